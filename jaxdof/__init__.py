@@ -1,0 +1,17 @@
+import importlib.metadata
+
+from ._filters import coc_filter as coc_filter
+from ._lens import (
+    coc_radius as coc_radius,
+    linearize_depth as linearize_depth,
+    signed_coc_radius as signed_coc_radius,
+    ThinLens as ThinLens,
+)
+from ._overlap import circle_pixel_overlap as circle_pixel_overlap
+from ._render import render as render
+
+
+try:
+    __version__ = importlib.metadata.version("jaxdof")
+except importlib.metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = "0.0.0"

@@ -1,0 +1,1 @@
+from .coc_filter import coc_filter as coc_filter

@@ -1,0 +1,85 @@
+"""What every filter method shares: input checks, the window a scene needs, and the tap offsets."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
+
+
+def is_concrete(*xs) -> bool:
+    """True when no argument is a tracer, i.e. its values can be inspected in Python."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
+
+
+def window_half_width(max_radius: float) -> int:
+    """Half-width `W` of the square window that a disc of radius `max_radius` can reach.
+
+    The pixel at integer offset `k` along an axis is touched when its near edge `k - 1/2` is closer
+    than the radius, so `W = ceil(R + 1/2) - 1` (never more than `ceil(R)`, the bound in the docs).
+    """
+    return max(math.ceil(max_radius + 0.5) - 1, 0)
+
+
+def tap_offsets(max_radius: float) -> np.ndarray:
+    """Integer offsets `(oy, ox)` of the pixels a disc of radius `max_radius` overlaps, `(n, 2)`.
+
+    The window's corners that the disc cannot reach are dropped (about a fifth of the taps).
+    """
+    w = window_half_width(max_radius)
+    o = np.arange(-w, w + 1)
+    oy, ox = np.meshgrid(o, o, indexing="ij")
+    near = np.hypot(np.maximum(np.abs(oy) - 0.5, 0), np.maximum(np.abs(ox) - 0.5, 0))
+    keep = (near < max_radius) | ((oy == 0) & (ox == 0))
+    return np.stack([oy[keep], ox[keep]], axis=-1).astype(np.int32)
+
+
+def check_max_radius(max_radius, radius) -> float:
+    """Resolve `max_radius`: a given Python number, or the largest radius of a concrete map."""
+    if max_radius is None:
+        if not is_concrete(radius):
+            raise ValueError(
+                "max_radius=None sizes the filter window from the largest circle in the scene, "
+                "which needs concrete values; under jit/vmap/grad pass max_radius=<float> (pixels) "
+                "as a static Python number."
+            )
+        r = np.asarray(radius)
+        return float(np.max(r)) if r.size else 0.0
+    if isinstance(max_radius, jax.Array) and not is_concrete(max_radius):
+        raise ValueError("max_radius must be a static Python number (it sizes the window), not a traced array")
+    max_radius = float(max_radius)
+    if not math.isfinite(max_radius) or max_radius < 0:
+        raise ValueError(f"max_radius must be a finite number >= 0 (pixels), got {max_radius}")
+    return max_radius
+
+
+def check_image_and_radius(image, radius) -> tuple[Array, Array, bool]:
+    """Validate shapes and dtypes; return `(image (H, W, C), radius (H, W), was_2d)` in one dtype."""
+    image = jnp.asarray(image)
+    radius = jnp.asarray(radius)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"image must have shape (H, W) or (H, W, C), got shape {image.shape}")
+    for name, x in (("image", image), ("radius", radius)):
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            raise ValueError(
+                f"{name} must be a floating-point array (linear light / pixels), got dtype "
+                f"{x.dtype}; convert it first, e.g. {name}.astype(numpy.float32)"
+            )
+    if radius.shape != image.shape[:2]:
+        raise ValueError(
+            f"radius must have the image's (H, W) = {image.shape[:2]}, got shape {radius.shape}"
+        )
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise ValueError(f"image must have at least one pixel, got shape {image.shape}")
+    dtype = jnp.result_type(image.dtype, radius.dtype)
+    if is_concrete(radius):
+        r = np.asarray(radius)
+        if np.any(np.isnan(r)) or np.any(r < 0):
+            raise ValueError("radius must be >= 0 pixels everywhere (found a negative or NaN value)")
+    was_2d = image.ndim == 2
+    if was_2d:
+        image = image[..., None]
+    return image.astype(dtype), radius.astype(dtype), was_2d
