@@ -30,25 +30,24 @@ def overlap_by_integration(dx: float, dy: float, r: float) -> float:
 
 
 def scatter_reference(image: np.ndarray, radius: np.ndarray, overlap) -> np.ndarray:
-    """Literal scatter loop over source pixels: each spreads `image[q] * overlap / (pi r^2)`.
+    """The scatter written literally, as a dense (pixels x pixels) matrix in float64.
 
-    `overlap(dx, dy, r)` is a vectorised float64 area function. Radii <= 1/2 stay in their pixel.
+    `M[p, q] = overlap(p - q, r_q) / (pi r_q^2)` (the identity column where `r_q <= 1/2`) and
+    `out = M @ image`: every source spreads over every output pixel, with no window and no
+    clamping. `overlap(dx, dy, r)` is a vectorised float64 area function.
     """
     image = np.asarray(image, np.float64)
     squeeze = image.ndim == 2
     if squeeze:
         image = image[..., None]
-    h, w, _ = image.shape
-    out = np.zeros_like(image)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
-    for qy in range(h):
-        for qx in range(w):
-            r = float(radius[qy, qx])
-            if r <= 0.5:
-                out[qy, qx] += image[qy, qx]
-                continue
-            wgt = np.asarray(overlap(xx - qx, yy - qy, r)) / (np.pi * r * r)
-            out += wgt[..., None] * image[qy, qx]
+    h, w, c = image.shape
+    yy, xx = (g.ravel() for g in np.mgrid[0:h, 0:w].astype(np.float64))
+    r = np.asarray(radius, np.float64).ravel()
+    dx, dy = xx[:, None] - xx[None, :], yy[:, None] - yy[None, :]
+    area = np.asarray(overlap(dx, dy, np.broadcast_to(r[None, :], dx.shape)))
+    big = r > 0.5
+    m = np.where(big[None, :], area / (np.pi * np.where(big, r, 1.0) ** 2)[None, :], np.eye(h * w))
+    out = (m @ image.reshape(h * w, c)).reshape(h, w, c)
     return out[..., 0] if squeeze else out
 
 
