@@ -1,6 +1,6 @@
 """Render a built-in procedural scene through a thin lens and write `render_scene.png`.
 
-    python examples/render_scene.py [--out render_scene.png]
+python examples/render_scene.py [--out render_scene.png]
 """
 
 import argparse
@@ -29,13 +29,19 @@ def scene(h: int = 160, w: int = 240):
 
 def main(out: str = "render_scene.png") -> None:
     image, depth = scene()
-    lens = jaxdof.ThinLens.from_sensor(0.085, 1.4, 4.0, sensor_width=0.036, image_width=image.shape[1])
+    lens = jaxdof.ThinLens.from_sensor(
+        0.085, 1.4, 4.0, sensor_width=0.036, image_width=image.shape[1]
+    )
     radius = jaxdof.coc_radius(jnp.asarray(depth), lens)
     blurred = jaxdof.render(image, depth, lens)  # window sized from the largest circle in the scene
-    print(f"blur scale K = {float(lens.blur_scale):.2f} px, largest circle {float(radius.max()):.2f} px")
+    print(
+        f"blur scale K = {float(lens.blur_scale):.2f} px, largest circle {float(radius.max()):.2f} px"
+    )
     fig, axes = plt.subplots(1, 3, figsize=(12, 3))
     for ax, img, title in zip(
-        axes, (image, np.asarray(blurred), np.asarray(radius)), ("all in focus", "85 mm f/1.4 focused at 4 m", "CoC radius (px)")
+        axes,
+        (image, np.asarray(blurred), np.asarray(radius)),
+        ("all in focus", "85 mm f/1.4 focused at 4 m", "CoC radius (px)"),
     ):
         ax.imshow(np.clip(img, 0, 1) if img.ndim == 3 else img)
         ax.set_title(title)

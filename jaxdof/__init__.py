@@ -2,10 +2,10 @@ import importlib.metadata
 
 from ._filters import coc_filter as coc_filter
 from ._lens import (
+    ThinLens as ThinLens,
     coc_radius as coc_radius,
     linearize_depth as linearize_depth,
     signed_coc_radius as signed_coc_radius,
-    ThinLens as ThinLens,
 )
 from ._overlap import circle_pixel_overlap as circle_pixel_overlap
 from ._render import render as render

@@ -77,8 +77,12 @@ class ThinLens(eqx.Module):
     ) -> ThinLens:
         """Build a lens whose pixel pitch is `sensor_width / image_width` (metres, pixels)."""
         if int(image_width) != image_width or image_width < 1:
-            raise ValueError(f"image_width must be a positive integer number of pixels, got {image_width}")
-        return cls(focal_length, f_number, focus_distance, _as_float(sensor_width) / int(image_width))
+            raise ValueError(
+                f"image_width must be a positive integer number of pixels, got {image_width}"
+            )
+        return cls(
+            focal_length, f_number, focus_distance, _as_float(sensor_width) / int(image_width)
+        )
 
     @property
     def blur_scale(self) -> Array:

@@ -40,7 +40,9 @@ def render(
     depth = jnp.asarray(depth)
     image = jnp.asarray(image)
     if depth.shape != image.shape[:2]:
-        raise ValueError(f"depth must have the image's (H, W) = {image.shape[:2]}, got {depth.shape}")
+        raise ValueError(
+            f"depth must have the image's (H, W) = {image.shape[:2]}, got {depth.shape}"
+        )
     if not jnp.issubdtype(depth.dtype, jnp.floating):
         raise ValueError(f"depth must be floating point (metres), got dtype {depth.dtype}")
     if is_concrete(depth, lens.focal_length):

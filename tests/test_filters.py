@@ -8,7 +8,7 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxdof
-from jaxdof import circle_pixel_overlap, coc_filter, render, ThinLens
+from jaxdof import ThinLens, circle_pixel_overlap, coc_filter, render
 from jaxdof._filters.common import tap_offsets, window_half_width
 
 from .helpers import scatter_reference, step_scene
@@ -100,7 +100,9 @@ def test_jit_vmap_match_eager():
     )
     np.testing.assert_allclose(np.asarray(batch[0]), np.asarray(eager), rtol=1e-14, atol=1e-14)
     np.testing.assert_allclose(
-        np.asarray(batch[1]), np.asarray(coc_filter(2 * image, radius / 2, max_radius=20.0)), rtol=1e-13
+        np.asarray(batch[1]),
+        np.asarray(coc_filter(2 * image, radius / 2, max_radius=20.0)),
+        rtol=1e-13,
     )
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxdof import coc_radius, linearize_depth, signed_coc_radius, ThinLens
+from jaxdof import ThinLens, coc_radius, linearize_depth, signed_coc_radius
 
 
 LENS = ThinLens(0.05, 2.0, 3.0, 36e-3 / 6000)
@@ -20,7 +20,10 @@ def test_formula_and_seed_form():
     # The seeds' form a |s (1/f - 1/d) - 1| with a = f / 2N and the sensor at s = f d_f / (d_f - f).
     a, s = f / (2 * n), f * d_f / (d_f - f)
     np.testing.assert_allclose(
-        np.asarray(coc_radius(d, LENS)), a * np.abs(s * (1 / f - 1 / d) - 1) / p, rtol=1e-12, atol=1e-10
+        np.asarray(coc_radius(d, LENS)),
+        a * np.abs(s * (1 / f - 1 / d) - 1) / p,
+        rtol=1e-12,
+        atol=1e-10,
     )  # atol: the seed form rounds to ~5e-13 px at the focus plane, where ours is exactly 0
 
 
@@ -93,7 +96,9 @@ def test_linearize_depth_inverts_glu_perspective():
     near, far = 0.1, 100.0
     proj = _glu_perspective(60.0, 4 / 3, near, far)
     z_true = np.array([0.1, 0.25, 1.0, 3.7, 42.0, 100.0])
-    eye = np.stack([0.3 * z_true, -0.2 * z_true, -z_true, np.ones_like(z_true)])  # camera looks down -z
+    eye = np.stack(
+        [0.3 * z_true, -0.2 * z_true, -z_true, np.ones_like(z_true)]
+    )  # camera looks down -z
     clip = proj @ eye
     window_z = (clip[2] / clip[3] + 1) / 2  # glDepthRange(0, 1)
     np.testing.assert_allclose(np.asarray(linearize_depth(window_z, near, far)), z_true, rtol=1e-9)

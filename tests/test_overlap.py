@@ -79,10 +79,14 @@ def test_continuous_across_regime_changes(r0):
 
 
 def _exact64(dx, dy, r):
-    return np.asarray(circle_pixel_overlap(dx.astype(np.float64), dy.astype(np.float64), r.astype(np.float64)))
+    return np.asarray(
+        circle_pixel_overlap(dx.astype(np.float64), dy.astype(np.float64), r.astype(np.float64))
+    )
 
 
-@pytest.mark.parametrize("r", [0.0, 1e-8, 1e-3, 0.3, 0.5, 0.7071, 1.0, 3.0, 10.0, 100.0, 333.3, 1000.0])
+@pytest.mark.parametrize(
+    "r", [0.0, 1e-8, 1e-3, 0.3, 0.5, 0.7071, 1.0, 3.0, 10.0, 100.0, 333.3, 1000.0]
+)
 def test_float32_accuracy_every_radius(r):
     """float32 error <= 2e-6 max(1, r) of a pixel (and relative to pi r^2 for tiny r)."""
     rng = np.random.default_rng(int(r * 1000) % 2**31)
@@ -149,12 +153,16 @@ def test_gradients_finite_and_checked(point):
 
 def test_gradient_matches_geometry():
     # dA/dr of a disc inside its square is its circumference; square inside the disc: 0.
-    assert float(jax.grad(circle_pixel_overlap, argnums=2)(0.0, 0.0, 0.3)) == pytest.approx(2 * math.pi * 0.3)
+    assert float(jax.grad(circle_pixel_overlap, argnums=2)(0.0, 0.0, 0.3)) == pytest.approx(
+        2 * math.pi * 0.3
+    )
     assert float(jax.grad(circle_pixel_overlap, argnums=2)(0.0, 0.0, 3.0)) == 0.0
     # At r = 1/2 the inscribed circle lies wholly in the square: dA/dr = pi (one-sided limits agree).
     assert float(jax.grad(circle_pixel_overlap, argnums=2)(0.0, 0.0, 0.5)) == pytest.approx(math.pi)
     # A half-plane-like cut: moving the square right by dx removes a full edge of length 1.
-    assert float(jax.grad(circle_pixel_overlap, argnums=0)(99.5, 0.0, 100.0)) == pytest.approx(-1.0, abs=1e-3)
+    assert float(jax.grad(circle_pixel_overlap, argnums=0)(99.5, 0.0, 100.0)) == pytest.approx(
+        -1.0, abs=1e-3
+    )
 
 
 def test_series_asin():
