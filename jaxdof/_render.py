@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
-import numpy as np
 
 from ._custom_types import DepthLike, Image, ImageLike
 from ._filters import coc_filter
-from ._filters.common import is_concrete
-from ._lens import ThinLens, coc_radius
+from ._lens import ThinLens, _check_depth, _error_if_invalid, coc_radius
 
 
 def render(
@@ -35,7 +33,15 @@ def render(
 
     **Returns:** the defocused image, same shape as `image`.
 
-    Concrete depths are checked: NaN, or not beyond the focal length, raise `ValueError`.
+    **Invalid inputs** (NaN or negative depth, depth not beyond the focal length, a lens with a
+    non-positive field or `focus_distance <= focal_length`): concrete values raise `ValueError`
+    before any work. Traced values (under `jit`, `grad`, `vmap`) are checked with
+    `equinox.error_if`: the compiled computation raises an error with the same message when it
+    runs (`EquinoxRuntimeError` under `equinox.filter_jit`, which also shows where; under
+    `jax.jit` JAX re-raises it as its own runtime error), under `vmap` if any batch element is
+    invalid, under `grad` in the forward pass. `EQX_ON_ERROR=nan` makes it return NaN instead, and
+    `EQX_ON_ERROR=off` removes the check. Its cost is a comparison and a reduction over the
+    depth map, negligible beside the filter (measured in `fits/stability.py`).
     """
     depth = jnp.asarray(depth)
     image = jnp.asarray(image)
@@ -45,12 +51,7 @@ def render(
         )
     if not jnp.issubdtype(depth.dtype, jnp.floating):
         raise ValueError(f"depth must be floating point (metres), got dtype {depth.dtype}")
-    if is_concrete(depth, lens.focal_length):
-        d, f = np.asarray(depth), np.asarray(lens.focal_length)
-        if np.any(np.isnan(d)) or np.any(d <= f):
-            raise ValueError(
-                "depth must be beyond the focal length everywhere (metres; NaN, negative and "
-                f"depths <= focal_length={f} m cannot be imaged)"
-            )
+    _check_depth(depth, lens)  # concrete: ValueError now
+    depth = _error_if_invalid(depth, lens)  # traced: error at run time (equinox.error_if)
     radius = coc_radius(depth, lens).astype(jnp.result_type(image.dtype, depth.dtype))
     return coc_filter(image, radius, method=method, max_radius=max_radius, normalize=normalize)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -49,15 +50,24 @@ def check_max_radius(max_radius, radius) -> float:
         r = np.asarray(radius)
         return float(np.max(r)) if r.size else 0.0
     if isinstance(max_radius, jax.Array) and not is_concrete(max_radius):
-        raise ValueError("max_radius must be a static Python number (it sizes the window), not a traced array")
+        raise ValueError(
+            "max_radius must be a static Python number (it sizes the window), not a traced array"
+        )
     max_radius = float(max_radius)
     if not math.isfinite(max_radius) or max_radius < 0:
         raise ValueError(f"max_radius must be a finite number >= 0 (pixels), got {max_radius}")
     return max_radius
 
 
+RADIUS_MSG = "radius must be >= 0 pixels everywhere (found a negative or NaN value)"
+
+
 def check_image_and_radius(image, radius) -> tuple[Array, Array, bool]:
-    """Validate shapes and dtypes; return `(image (H, W, C), radius (H, W), was_2d)` in one dtype."""
+    """Validate shapes and dtypes; return `(image (H, W, C), radius (H, W), was_2d)` in one dtype.
+
+    Radii must be `>= 0` and not NaN: concrete values raise `ValueError`; traced ones are checked
+    at run time by `equinox.error_if` (a comparison and a reduction over the map).
+    """
     image = jnp.asarray(image)
     radius = jnp.asarray(radius)
     if image.ndim not in (2, 3):
@@ -78,7 +88,12 @@ def check_image_and_radius(image, radius) -> tuple[Array, Array, bool]:
     if is_concrete(radius):
         r = np.asarray(radius)
         if np.any(np.isnan(r)) or np.any(r < 0):
-            raise ValueError("radius must be >= 0 pixels everywhere (found a negative or NaN value)")
+            raise ValueError(RADIUS_MSG)
+    else:
+        # Under jit/grad/vmap: an error with the same message when the computation runs (if any
+        # batch element is bad under vmap; in the forward pass under grad). The returned radius
+        # must be used for the check to survive dead-code elimination.
+        radius = eqx.error_if(radius, ~(radius >= 0), RADIUS_MSG)  # `~(r >= 0)`: NaN fails too
     was_2d = image.ndim == 2
     if was_2d:
         image = image[..., None]
