@@ -1,0 +1,454 @@
+"""Image files in, float linear-light numpy arrays out (and back): the imageio/numpy boundary.
+
+Everything here is plain numpy: no JAX. The command line (`jaxdof._cli`) reads files with
+`read_image` and `read_depth`, filters them with the library, and writes with `write_image`.
+
+**Conventions.**
+
+- Integer files (8- and 16-bit PNG, TIFF, JPEG) hold sRGB-encoded values: they are decoded to
+  linear light (IEC 61966-2-1 transfer curve) before any filtering, because blur mixes light, not
+  encoded values, and encoded back when written. `linear=True` takes their values as linear.
+- Float files (float TIFF, `.npy`, `.npz`, EXR where imageio can read it) are linear already.
+- Depth is z-depth along the optical axis in metres: float files as they are, integer files
+  times a scale (metres per count), an OpenGL depth buffer through `jaxdof.linearize_depth`, or
+  inverse depth (1/m).
+- `.npy`/`.npz` are always read with `allow_pickle=False`: a pickle can run code on load.
+- Writes are atomic: a temporary file in the destination's folder, then `os.replace`, so a
+  reader never sees half a file and a failed write leaves the old file as it was. An output
+  path that names an input file is refused.
+
+**Files imageio cannot read correctly here.** Pillow (imageio's PNG backend) reads 16-bit colour
+PNGs as 8 bits per channel, silently. `_read_png16_colour` decodes them at full precision by
+running Pillow's decoder twice, once for the high and once for the low byte of each sample.
+EXR needs an imageio backend (opencv, pyav or freeimage) that is not a dependency of jaxdof; when
+none is installed, reading an EXR fails with a message that says so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import struct
+import tempfile
+import zlib
+
+import numpy as np
+
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr", ".npy", ".npz")
+OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".npy", ".npz")
+_NPZ_KEYS = {"image": ("image", "target"), "depth": ("depth",)}
+
+
+class InputError(Exception):
+    """A problem with the user's files or options: the CLI prints `str(err)` and exits with 2."""
+
+
+@dataclasses.dataclass
+class Loaded:
+    """An array read from a file, with what is needed to write a result back alike.
+
+    `bits` is 8 or 16 for integer files and `None` for float files. `notes` are one-line remarks
+    for the user (e.g. a dropped alpha channel).
+    """
+
+    array: np.ndarray
+    bits: int | None
+    notes: list[str] = dataclasses.field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------------------------
+# sRGB transfer curve
+
+
+def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values in `[0, 1]` to linear light (IEC 61966-2-1).
+
+    `c / 12.92` for `c <= 0.04045`, else `((c + 0.055) / 1.055)^2.4`.
+    """
+    c = np.asarray(encoded, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((np.maximum(c, 0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear light to sRGB-encoded values, clipped to `[0, 1]` (the inverse of `srgb_to_linear`)."""
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(
+        x <= 0.0031308, 12.92 * x, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055
+    )
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+
+
+def _suffix(path: str) -> str:
+    return os.path.splitext(path)[1].lower()
+
+
+def _read_npy(path: str, role: str) -> np.ndarray:
+    try:
+        if _suffix(path) == ".npy":
+            return np.load(path, allow_pickle=False)
+        with np.load(path, allow_pickle=False) as npz:
+            keys = list(npz.keys())
+            if len(keys) == 1:
+                return npz[keys[0]]
+            for key in _NPZ_KEYS[role]:
+                if key in keys:
+                    return npz[key]
+            raise InputError(
+                f"{path}: .npz holds {len(keys)} arrays {keys}; keep one, or name the {role} "
+                f"array {_NPZ_KEYS[role][0]!r}"
+            )
+    except ValueError as err:
+        if "allow_pickle" in str(err):
+            raise InputError(
+                f"{path}: holds pickled Python objects, which are never loaded (they can run "
+                "code); save a plain numeric array with numpy.save"
+            ) from None
+        raise InputError(f"{path}: not a readable .npy/.npz file ({err})") from None
+    except (OSError, EOFError, zlib.error) as err:
+        raise InputError(f"{path}: not a readable .npy/.npz file ({err})") from None
+
+
+def _png_header(path: str) -> tuple[int, int] | None:
+    """`(bit_depth, colour_type)` from a PNG's IHDR chunk, or `None` if it is not a PNG."""
+    with open(path, "rb") as fh:
+        head = fh.read(29)
+    if len(head) < 29 or head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+        return None
+    return head[24], head[25]
+
+
+def _read_png16_colour(path: str) -> np.ndarray:
+    """Decode a 16-bit RGB/RGBA PNG at full precision with Pillow.
+
+    Pillow's PNG decoder undoes the PNG filters on the whole 16-bit stream and then unpacks each
+    sample with a "raw mode". Its RGB image modes hold 8 bits, so the default raw mode (`;16B`,
+    big-endian) keeps the high byte; asking for `;16L` (little-endian) keeps the other, low, byte.
+    Two decodes give both bytes.
+    """
+    from PIL import Image
+
+    halves = []
+    for order in ("16B", "16L"):
+        with Image.open(path) as im:
+            (tile,) = im.tile
+            codec, extents, offset, rawmode = tile[:4]
+            if not (isinstance(rawmode, str) and rawmode in ("RGB;16B", "RGBA;16B")):
+                raise InputError(
+                    f"{path}: this 16-bit PNG layout ({rawmode}) is not supported; save it as "
+                    "16-bit RGB PNG, 16-bit TIFF or .npy"
+                )
+            rawmode = rawmode[:-3] + order
+            # Pillow >= 11 keeps tiles as a named tuple, older versions as a plain tuple.
+            im.tile = [
+                tile._replace(args=rawmode)
+                if hasattr(tile, "_replace")
+                else (codec, extents, offset, rawmode)
+            ]
+            halves.append(np.asarray(im))
+    return (halves[0].astype(np.uint16) << 8) | halves[1].astype(np.uint16)
+
+
+def _read_raw(path: str, role: str, option: str) -> np.ndarray:
+    """Read a file as it is stored (integers stay integers). Errors name the file."""
+    suffix = _suffix(path)
+    if not os.path.exists(path):
+        raise InputError(f"{path}: no such file ({option})")
+    if os.path.isdir(path):
+        raise InputError(f"{path}: is a folder, not an image file ({option})")
+    if suffix not in IMAGE_SUFFIXES:
+        raise InputError(
+            f"{path}: unsupported format {suffix or '(no extension)'!r} ({option}); use one of "
+            + ", ".join(IMAGE_SUFFIXES)
+        )
+    if not os.access(path, os.R_OK):
+        raise InputError(f"{path}: cannot be read (permission denied) ({option})")
+    if suffix in (".npy", ".npz"):
+        array = _read_npy(path, role)
+    else:
+        import imageio.v3 as iio
+
+        try:
+            header = _png_header(path) if suffix == ".png" else None
+            if header is not None and header[0] == 16 and header[1] in (2, 6):
+                array = _read_png16_colour(path)
+            else:
+                array = iio.imread(path)
+        except InputError:
+            raise
+        except Exception as err:  # imageio raises many types; all mean "could not decode"
+            if suffix == ".exr":
+                raise InputError(
+                    f"{path}: cannot read EXR here: imageio has no EXR backend installed "
+                    "(opencv, pyav or freeimage); save it as float32 TIFF or .npy"
+                ) from None
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise InputError(f"{path}: not a readable {suffix} image ({first})") from None
+    array = np.asarray(array)
+    if array.dtype == object or array.dtype.kind not in "uif":
+        raise InputError(f"{path}: unsupported data type {array.dtype} ({option}); need numbers")
+    if array.ndim == 3 and array.shape[-1] == 1:
+        array = array[..., 0]
+    if array.ndim not in (2, 3) or 0 in array.shape[:2]:
+        raise InputError(
+            f"{path}: shape {array.shape} is not an image ({option}); need (H, W) or (H, W, C)"
+        )
+    return array
+
+
+def read_image(path: str, *, linear: bool = False, option: str = "IMAGE") -> Loaded:
+    """Read an image as float32 linear light, `(H, W)` or `(H, W, C)` with `C` in {1, 3}.
+
+    8/16-bit integers are scaled to `[0, 1]` and decoded from sRGB (unless `linear`); float files
+    are taken as linear. An alpha channel is dropped (noted in `Loaded.notes`).
+    """
+    raw = _read_raw(path, "image", option)
+    notes = []
+    if raw.ndim == 3:
+        if raw.shape[-1] in (2, 4):
+            raw = raw[..., :-1]
+            notes.append(f"{path}: alpha channel ignored")
+            if raw.shape[-1] == 1:
+                raw = raw[..., 0]
+        elif raw.shape[-1] != 3:
+            raise InputError(
+                f"{path}: {raw.shape[-1]} channels; need 1 (grey), 3 (RGB) or 4 (RGBA)"
+            )
+    if raw.dtype == np.uint8 or raw.dtype == np.uint16:
+        bits = 8 * raw.dtype.itemsize
+        encoded = raw.astype(np.float64) / (2**bits - 1)
+        image = encoded if linear else srgb_to_linear(encoded)
+    elif raw.dtype.kind == "f":
+        bits = None
+        image = raw
+        if not np.all(np.isfinite(image)):
+            raise InputError(f"{path}: contains NaN or infinite values ({option})")
+    else:
+        raise InputError(
+            f"{path}: {raw.dtype} pixels are not supported ({option}); images are 8/16-bit "
+            "unsigned integers or floats"
+        )
+    return Loaded(np.ascontiguousarray(image, dtype=np.float32), bits, notes)
+
+
+def read_depth(
+    path: str,
+    *,
+    scale: float | None = None,
+    zbuffer: bool = False,
+    near: float | None = None,
+    far: float | None = None,
+    inverse: bool = False,
+    option: str = "DEPTH",
+) -> np.ndarray:
+    """Read a depth map as float32 z-depth in metres, `(H, W)`.
+
+    - float file: metres, times `scale` if given;
+    - integer file: counts times `scale` (metres per count), which must be given;
+    - `zbuffer`: OpenGL window depth in `[0, 1]` (integer files: counts / (2^bits - 1)) mapped
+      through `jaxdof.linearize_depth(z, near, far)`;
+    - `inverse`: the (scaled) values are inverse depth in 1/m; `0` means infinitely far.
+
+    Raises `InputError` for NaN or infinite values in the file, several different channels, or a
+    depth that is not positive.
+    """
+    raw = _read_raw(path, "depth", option)
+    if raw.ndim == 3:
+        if raw.shape[-1] in (2, 4):  # grey+alpha / RGBA: drop alpha
+            raw = raw[..., :-1]
+        if not np.all(raw == raw[..., :1]):
+            raise InputError(
+                f"{path}: depth has {raw.shape[-1]} different channels ({option}); a depth map has one"
+            )
+        raw = raw[..., 0]
+    if zbuffer and inverse:
+        raise InputError("--zbuffer and --inverse-depth cannot be combined")
+    if raw.dtype.kind == "f":
+        if not np.all(np.isfinite(raw)):
+            raise InputError(
+                f"{path}: depth contains NaN or infinite values ({option}); give far points a "
+                "large finite depth (e.g. 1e6 m)"
+            )
+        values = raw.astype(np.float64)
+    elif raw.dtype.kind in "ui":
+        values = raw.astype(np.float64)
+        if zbuffer:
+            if raw.dtype not in (np.uint8, np.uint16):
+                raise InputError(
+                    f"{path}: a {raw.dtype} depth buffer is not supported; use 8/16-bit or float"
+                )
+            values = values / (np.iinfo(raw.dtype).max)
+        elif scale is None:
+            raise InputError(
+                f"{path}: integer depth needs --depth-scale (metres per count, e.g. 1mm), "
+                "or --zbuffer --near --far for an OpenGL depth buffer"
+            )
+    else:
+        raise InputError(f"{path}: {raw.dtype} depth is not supported ({option})")
+
+    if zbuffer:
+        if scale is not None:
+            raise InputError("--depth-scale cannot be combined with --zbuffer (use --near/--far)")
+        if near is None or far is None:
+            raise InputError("--zbuffer needs both --near and --far (clip planes, e.g. 0.1m 100m)")
+        if not 0 < near < far:
+            raise InputError(f"--near {near} m and --far {far} m must satisfy 0 < near < far")
+        if values.min() < 0 or values.max() > 1:
+            raise InputError(
+                f"{path}: depth-buffer values must lie in [0, 1] (found {values.min():g} .. "
+                f"{values.max():g}) ({option})"
+            )
+        import jaxdof
+
+        depth = np.asarray(jaxdof.linearize_depth(values, near, far), dtype=np.float64)
+    else:
+        if near is not None or far is not None:
+            raise InputError("--near/--far only apply with --zbuffer")
+        values = values * (1.0 if scale is None else scale)
+        if inverse:
+            if values.min() < 0:
+                raise InputError(
+                    f"{path}: inverse depth must be >= 0 (found {values.min():g}) ({option})"
+                )
+            with np.errstate(divide="ignore"):
+                depth = np.where(values > 0, 1.0 / np.where(values > 0, values, 1.0), np.inf)
+        else:
+            depth = values
+    if not np.all(depth > 0):
+        raise InputError(
+            f"{path}: depth must be positive metres everywhere (found {np.nanmin(depth):g}) ({option})"
+        )
+    return np.ascontiguousarray(depth, dtype=np.float32)
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing
+
+
+def _png_bytes_16(samples: np.ndarray) -> bytes:
+    """A 16-bit PNG (grey, or RGB) from uint16 samples `(H, W)` or `(H, W, 3)`, filter type 0."""
+    samples = samples if samples.ndim == 3 else samples[..., None]
+    h, w, c = samples.shape
+    colour_type = {1: 0, 3: 2}[c]
+    rows = samples.astype(">u2").reshape(h, w * c).view(np.uint8)
+    raw = np.concatenate([np.zeros((h, 1), np.uint8), rows], axis=1).tobytes()
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    header = struct.pack(">IIBBBBB", w, h, 16, colour_type, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw, 6))
+        + chunk(b"IEND", b"")
+    )
+
+
+def _same_file(a: str, b: str) -> bool:
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def check_output(path: str, inputs: list[str], option: str = "-o") -> None:
+    """Refuse an output that would overwrite an input, an unsupported suffix, or a missing folder."""
+    for src in inputs:
+        if _same_file(path, src):
+            raise InputError(f"{option} {path}: is also an input file; choose another output path")
+    suffix = _suffix(path)
+    if suffix not in OUTPUT_SUFFIXES:
+        raise InputError(
+            f"{option} {path}: unsupported output format {suffix or '(no extension)'!r}; use one of "
+            + ", ".join(OUTPUT_SUFFIXES)
+        )
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"{option} {path}: folder {folder} does not exist")
+    if os.path.isdir(path):
+        raise InputError(f"{option} {path}: is a folder; give a file name")
+
+
+def atomic_write(path: str, write, inputs: list[str] = (), option: str = "-o") -> None:
+    """Call `write(tmp_path)` on a temporary file beside `path`, then rename it onto `path`."""
+    for src in inputs:
+        if _same_file(path, src):
+            raise InputError(f"{option} {path}: is also an input file; choose another output path")
+    folder = os.path.dirname(os.path.abspath(path))
+    base, suffix = os.path.splitext(os.path.basename(path))
+    fd, tmp = tempfile.mkstemp(prefix=f".{base}.", suffix=suffix, dir=folder)
+    os.close(fd)
+    try:
+        write(tmp)
+        # mkstemp makes the file private (0600); give it the mode a plain open() would have, or
+        # the mode of the file it replaces.
+        if os.path.exists(path):
+            mode = os.stat(path).st_mode & 0o777
+        else:
+            umask = os.umask(0)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def encode_image(image: np.ndarray, *, suffix: str, bits: int | None, linear: bool = False):
+    """Array in the stored form for `suffix`: float32 linear, or 8/16-bit (sRGB unless `linear`)."""
+    image = np.asarray(image, dtype=np.float64)
+    if suffix in (".npy", ".npz") or (suffix in (".tif", ".tiff") and bits is None):
+        return image.astype(np.float32)
+    if suffix in (".jpg", ".jpeg"):
+        bits = 8
+    bits = 16 if bits is None else bits
+    encoded = np.clip(image, 0.0, 1.0) if linear else linear_to_srgb(image)
+    dtype = np.uint8 if bits == 8 else np.uint16
+    return np.round(encoded * (2**bits - 1)).astype(dtype)
+
+
+def write_image(
+    path: str,
+    image: np.ndarray,
+    *,
+    bits: int | None,
+    linear: bool = False,
+    inputs: list[str] = (),
+    option: str = "-o",
+) -> None:
+    """Write a linear-light image atomically, encoded for its file type.
+
+    `.npy`/`.npz` (key `image`) and TIFF with `bits=None` store float32 linear values; PNG, JPEG
+    and TIFF with `bits` 8 or 16 store sRGB-encoded integers (`linear=True`: linear integers).
+    PNG with `bits=None` is written at 16 bits.
+    """
+    check_output(path, list(inputs), option)
+    suffix = _suffix(path)
+    stored = encode_image(image, suffix=suffix, bits=bits, linear=linear)
+
+    def write(tmp: str) -> None:
+        if suffix == ".npy":
+            with open(tmp, "wb") as fh:
+                np.save(fh, stored, allow_pickle=False)
+        elif suffix == ".npz":
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, image=stored)
+        elif suffix == ".png" and stored.dtype == np.uint16:
+            with open(tmp, "wb") as fh:  # Pillow cannot write 16-bit colour PNG
+                fh.write(_png_bytes_16(stored))
+        else:
+            import imageio.v3 as iio
+
+            iio.imwrite(tmp, stored, extension=suffix)
+
+    atomic_write(path, write, list(inputs), option)
