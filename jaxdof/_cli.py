@@ -13,6 +13,7 @@ import os
 import re
 import sys
 import time
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -420,8 +421,11 @@ def run_render(args) -> int:
 
 def _lens_dict(lens, index: int) -> dict:
     def value(name):
-        v = np.asarray(getattr(lens, name), dtype=np.float64)
-        return float(v if v.ndim == 0 else v.reshape(-1)[index])
+        v = np.asarray(getattr(lens, name))
+        v = v if v.ndim == 0 else v.reshape(-1)[index]
+        # The shortest decimal that round-trips the array's own precision (0.085, not
+        # 0.08500000089406967 for a float32 value).
+        return float(str(v.item() if v.dtype == np.float64 else np.float32(v)))
 
     return {name: value(name) for name in (*FIELDS, "pixel_pitch")}
 
@@ -429,9 +433,9 @@ def _lens_dict(lens, index: int) -> dict:
 def _stderr_dict(stderr: dict, index: int | None) -> dict:
     out = {}
     for name, v in stderr.items():
-        v = np.asarray(v, dtype=np.float64)
+        v = np.asarray(v)
         v = v if v.ndim == 0 or index is None else v.reshape(-1)[min(index, v.size - 1)]
-        out[name] = float(v) if np.isfinite(v) else None
+        out[name] = float(f"{float(v):.4g}") if np.isfinite(v) else None
     return out
 
 
@@ -588,13 +592,28 @@ def demo_scene(h: int = 72, w: int = 96) -> tuple[np.ndarray, np.ndarray]:
     # Ground: inverse depth linear in the row (a plane seen in perspective), capped by the wall.
     inv = 1 / 12 + (1 / 1.2 - 1 / 12) * np.clip((yy - 0.3 * h) / (0.7 * h - 1), 0, 1)
     depth = 1 / inv
-    depth[int(0.25 * h) : int(0.85 * h), int(0.10 * w) : int(0.35 * w)] = 1.8
-    depth[int(0.15 * h) : int(0.55 * h), int(0.55 * w) : int(0.85 * w)] = 5.0
     checker = ((yy // 6 + xx // 6) % 2).astype(np.float64)
-    noise = rng.uniform(size=(h, w))
-    base = 0.15 + 0.5 * checker + 0.3 * noise
-    tint = np.stack([1.0 + 0 * xx, 0.6 + 0.4 * xx / w, 0.5 + 0.5 * yy / h], axis=-1)
-    image = np.clip(base[..., None] * tint, 0, 1)
+    base = 0.15 + 0.5 * checker + 0.3 * rng.uniform(size=(h, w))
+    image = base[..., None] * np.stack([1.0 + 0 * xx, 0.6 + 0.4 * xx / w, 0.5 + 0.5 * yy / h], -1)
+    boxes = [  # (rows, cols, depth m, colour): a near red box and a far blue one
+        (
+            slice(int(0.25 * h), int(0.85 * h)),
+            slice(int(0.10 * w), int(0.35 * w)),
+            1.8,
+            (0.9, 0.3, 0.2),
+        ),
+        (
+            slice(int(0.15 * h), int(0.55 * h)),
+            slice(int(0.55 * w), int(0.85 * w)),
+            5.0,
+            (0.2, 0.4, 0.9),
+        ),
+    ]
+    stripes = 0.35 + 0.65 * ((xx + yy) // 3 % 2)  # finer texture on the boxes
+    for rows, cols, d, colour in boxes:
+        depth[rows, cols] = d
+        image[rows, cols] = stripes[rows, cols, None] * np.asarray(colour)
+    image = np.clip(image, 0, 1)
     return image.astype(np.float32), depth.astype(np.float32)
 
 
@@ -663,11 +682,11 @@ def run_demo(args) -> int:
 # ----------------------------------------------------------------------------------------------
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `jaxdof` script and of `python -m jaxdof`; returns the exit status."""
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # --help, --version, or a one-line usage error
         return int(exc.code or 0)
     try:

@@ -8,7 +8,7 @@ Everything here is plain numpy: no JAX. The command line (`jaxdof._cli`) reads f
 - Integer files (8- and 16-bit PNG, TIFF, JPEG) hold sRGB-encoded values: they are decoded to
   linear light (IEC 61966-2-1 transfer curve) before any filtering, because blur mixes light, not
   encoded values, and encoded back when written. `linear=True` takes their values as linear.
-- Float files (float TIFF, `.npy`, `.npz`, EXR where imageio can read it) are linear already.
+- Float files (float TIFF, `.npy`, `.npz`) are linear already.
 - Depth is z-depth along the optical axis in metres: float files as they are, integer files
   times a scale (metres per count), an OpenGL depth buffer through `jaxdof.linearize_depth`, or
   inverse depth (1/m).
@@ -20,8 +20,9 @@ Everything here is plain numpy: no JAX. The command line (`jaxdof._cli`) reads f
 **Files imageio cannot read correctly here.** Pillow (imageio's PNG backend) reads 16-bit colour
 PNGs as 8 bits per channel, silently. `_read_png16_colour` decodes them at full precision by
 running Pillow's decoder twice, once for the high and once for the low byte of each sample.
-EXR needs an imageio backend (opencv, pyav or freeimage) that is not a dependency of jaxdof; when
-none is installed, reading an EXR fails with a message that says so.
+EXR needs an imageio backend (opencv, pyav or freeimage) that is not a dependency of jaxdof (and
+none of them is exercised here), so an EXR file gets a message that says so and suggests float32
+TIFF or `.npy`, which are linear like EXR.
 """
 
 from __future__ import annotations
@@ -31,12 +32,22 @@ import os
 import struct
 import tempfile
 import zlib
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr", ".npy", ".npz")
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".npy", ".npz")
+# suffix -> (format name, imageio plugin, leading bytes of a valid file)
+_FORMATS = {
+    ".png": ("PNG", "pillow", (b"\x89PNG\r\n\x1a\n",)),
+    ".tif": ("TIFF", "tifffile", (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")),
+    ".jpg": ("JPEG", "pillow", (b"\xff\xd8\xff",)),
+    ".exr": ("EXR", None, (b"\x76\x2f\x31\x01",)),
+}
+_FORMATS[".tiff"] = _FORMATS[".tif"]
+_FORMATS[".jpeg"] = _FORMATS[".jpg"]
 _NPZ_KEYS = {"image": ("image", "target"), "depth": ("depth",)}
 
 
@@ -61,7 +72,7 @@ class Loaded:
 # sRGB transfer curve
 
 
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
+def srgb_to_linear(encoded: np.ndarray | float) -> np.ndarray:
     """sRGB-encoded values in `[0, 1]` to linear light (IEC 61966-2-1).
 
     `c / 12.92` for `c <= 0.04045`, else `((c + 0.055) / 1.055)^2.4`.
@@ -70,7 +81,7 @@ def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((np.maximum(c, 0.04045) + 0.055) / 1.055) ** 2.4)
 
 
-def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+def linear_to_srgb(linear: np.ndarray | float) -> np.ndarray:
     """Linear light to sRGB-encoded values, clipped to `[0, 1]` (the inverse of `srgb_to_linear`)."""
     x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
     return np.where(
@@ -172,19 +183,28 @@ def _read_raw(path: str, role: str, option: str) -> np.ndarray:
         import imageio.v3 as iio
 
         try:
+            with open(path, "rb") as fh:
+                magic = fh.read(8)
+            kind, plugin, signatures = _FORMATS[suffix]
+            if not any(magic.startswith(sig) for sig in signatures):
+                raise InputError(
+                    f"{path}: not a valid {kind} file (it does not start with the {kind} "
+                    f"signature) ({option})"
+                )
+            if suffix == ".exr":
+                raise InputError(
+                    f"{path}: cannot read EXR here: imageio has no EXR backend among jaxdof's "
+                    "dependencies; convert it to float32 TIFF or .npy (both linear, like EXR)"
+                )
             header = _png_header(path) if suffix == ".png" else None
             if header is not None and header[0] == 16 and header[1] in (2, 6):
                 array = _read_png16_colour(path)
             else:
-                array = iio.imread(path)
+                # A named plugin: imageio's search over every plugin leaks file handles.
+                array = iio.imread(path, plugin=plugin) if plugin else iio.imread(path)
         except InputError:
             raise
         except Exception as err:  # imageio raises many types; all mean "could not decode"
-            if suffix == ".exr":
-                raise InputError(
-                    f"{path}: cannot read EXR here: imageio has no EXR backend installed "
-                    "(opencv, pyav or freeimage); save it as float32 TIFF or .npy"
-                ) from None
             first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise InputError(f"{path}: not a readable {suffix} image ({first})") from None
     array = np.asarray(array)
@@ -359,7 +379,7 @@ def _same_file(a: str, b: str) -> bool:
         return False
 
 
-def check_output(path: str, inputs: list[str], option: str = "-o") -> None:
+def check_output(path: str, inputs: Sequence[str], option: str = "-o") -> None:
     """Refuse an output that would overwrite an input, an unsupported suffix, or a missing folder."""
     for src in inputs:
         if _same_file(path, src):
@@ -377,7 +397,9 @@ def check_output(path: str, inputs: list[str], option: str = "-o") -> None:
         raise InputError(f"{option} {path}: is a folder; give a file name")
 
 
-def atomic_write(path: str, write, inputs: list[str] = (), option: str = "-o") -> None:
+def atomic_write(
+    path: str, write: Callable[[str], None], inputs: Sequence[str] = (), option: str = "-o"
+) -> None:
     """Call `write(tmp_path)` on a temporary file beside `path`, then rename it onto `path`."""
     for src in inputs:
         if _same_file(path, src):
@@ -423,7 +445,7 @@ def write_image(
     *,
     bits: int | None,
     linear: bool = False,
-    inputs: list[str] = (),
+    inputs: Sequence[str] = (),
     option: str = "-o",
 ) -> None:
     """Write a linear-light image atomically, encoded for its file type.
