@@ -1,0 +1,901 @@
+r"""Lens calibration: recover focal length, f-number and focus distance from defocused photos.
+
+`fit_lens` solves the nonlinear least-squares problem
+
+$$\min_\theta \sum_t \sum_p w_p \left( g_t\,\mathrm{render}(I, Z, \mathrm{lens}_t(\theta))_p + o_t
+  - T_{t,p} \right)^2$$
+
+over the free lens fields `theta` (and, optionally, an exposure gain `g_t` and offset `o_t` per
+target), with an optimistix least-squares solver (Levenberg-Marquardt by default), from a few
+starting points spread over the scene's depth range. It is the only module that imports optimistix.
+
+**What a single image can determine.** The circle of confusion of a point at depth `d` is
+`r = K |1 - d_f / d|` pixels with `K = f^2 / (2 N (d_f - f)) / p` (`jaxdof.coc_radius`), so one
+photo determines `K` and `d_f` but not `f` and `N` separately: any `(f, N)` with the same `K` (and
+`d_f`) renders the same image. `fit_lens` finds such a degeneracy from the rank of the
+column-scaled Jacobian at the solution and refuses it (`ValueError`) unless asked not to. A focus
+bracket (several photos with different focus distances through the same `f` and `N`) separates
+them: `K_t \propto 1 / (d_{f,t} - f)` varies across the bracket in a way that depends on `f`.
+
+**Coordinates.** The solver works in unconstrained coordinates, so every iterate is a physical lens:
+`log N`, `log f` (or `logit(f / d_f)` when the focus distance is held fixed, keeping `f < d_f`), and
+`log(d_f - f)` for the focus distance. Results and standard errors are mapped back to each field's
+own units (metres, or dimensionless for `N`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ._filters.common import is_concrete
+from ._lens import ThinLens
+from ._render import render
+
+
+LENS_FIELDS = ("focal_length", "f_number", "focus_distance")
+_ALL_FIELDS = ("focal_length", "f_number", "focus_distance", "pixel_pitch")
+_UNITS = {"focal_length": "m", "f_number": "", "focus_distance": "m", "gain": "", "offset": ""}
+
+# Status codes of a fit (FitResult.status).
+CONVERGED = 0
+MAX_STEPS = 1
+SOLVER_FAILED = 2
+DEAD_ZONE = 3
+DEGENERATE = 4
+WINDOW = 5
+AMBIGUOUS = 6
+_STATUS_TEXT = {
+    CONVERGED: "converged",
+    MAX_STEPS: "did not converge within max_steps",
+    SOLVER_FAILED: "the solver failed (non-finite values or a failed linear solve)",
+    DEAD_ZONE: "every circle of confusion is under half a pixel: the render does not depend on the lens",
+    DEGENERATE: "the free parameters are not all determined by the data (rank-deficient Jacobian)",
+    WINDOW: "the fitted circles exceed the filter window (max_radius): the model was clamped",
+    AMBIGUOUS: "several distinct lenses fit the data equally well (e.g. the near/far ambiguity)",
+}
+
+
+def _default_tol(dtype) -> float:
+    # Steps in the log coordinates below these are at the rounding floor of the residual: in
+    # float32 the iterates jitter at ~1e-6 (a residual of ~1e-7 per pixel moved by a Jacobian of
+    # order 1), so 1e-5 terminates reliably while leaving errors far under 1e-3; float64 goes to 1e-8.
+    return 1e-5 if jnp.dtype(dtype) == jnp.float32 else 1e-8
+
+
+# --------------------------------------------------------------------------------------------
+# The model: parameter vector <-> lenses, and the residual.
+# --------------------------------------------------------------------------------------------
+
+# Unconstrained coordinates are clipped to this range before they are mapped to a lens, so that no
+# iterate overflows to an infinite or zero field (exp(40) ~ 2e17 is far outside any real lens).
+_CLIP = 40.0
+
+
+class _Layout(eqx.Module):
+    """Which entry of the parameter vector drives which lens field of which target: data, not code.
+
+    Keeping this in arrays (passed through `args`) means every free/shared choice with the same
+    number of targets, image shape and window runs the same compiled solve.
+
+    - `base`: `(T, 4)` init values of `(f, N, d_f, pitch)`, used for the fields that are not free.
+    - `src`: `(T, 3)` index into `y` of the coordinate of `(f, N, d_f)` for each target.
+    - `use`: `(T, 3)` whether that field is free (else `base` is used).
+    - `fcap`: `(T,)` upper bound on the focal length (metres): just under the nearest depth and,
+      with the focus distance fixed, under the focus distance.
+    """
+
+    base: Float[Array, "t 4"]
+    src: Int[Array, "t 3"]
+    use: Bool[Array, "t 3"]
+    fcap: Float[Array, " t"]
+
+
+class _Model(eqx.Module):
+    r"""The residual function for optimistix, and the maps between `y` and lenses.
+
+    `y` holds `3 T` lens coordinates, field-major (`y[j T + t]` is field `j` of target `t`:
+    `logit(f / fcap)`, `log N`, `log(d_f - f)`), then with `exposure` `T` gains and `T` offsets.
+    A shared field reads slot `j T` for every target; fixed fields read `base`; unread slots have
+    zero Jacobian columns and are left out of the statistics.
+    """
+
+    n_targets: int = eqx.field(static=True)
+    max_radius: float = eqx.field(static=True)
+    exposure: bool = eqx.field(static=True)
+
+    def natural(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, "t 4"]:
+        """Lens fields `(f, N, d_f, pitch)` of every target."""
+        y = jnp.where(jnp.isfinite(y), jnp.clip(y, -_CLIP, _CLIP), 0)
+        u = y[layout.src]
+        base = layout.base
+        f = jnp.where(layout.use[:, 0], layout.fcap * jax.nn.sigmoid(u[:, 0]), base[:, 0])
+        n = jnp.where(layout.use[:, 1], jnp.exp(u[:, 1]), base[:, 1])
+        d_f = jnp.where(layout.use[:, 2], f + jnp.exp(u[:, 2]), base[:, 2])
+        return jnp.stack([f, n, d_f, base[:, 3]], axis=-1)
+
+    def exposure_params(self, y: Float[Array, " P"]) -> tuple[Array, Array]:
+        """Gain and offset per target (ones and zeros without `exposure`)."""
+        t = self.n_targets
+        if not self.exposure:
+            return jnp.ones(t, y.dtype), jnp.zeros(t, y.dtype)
+        return y[3 * t : 4 * t], y[4 * t : 5 * t]
+
+    def pack(self, params: Float[Array, "t 4"], layout: _Layout) -> Float[Array, " P"]:
+        """Inverse of `natural` (a shared field takes the first target's value)."""
+        f, n, d_f = params[:, 0], params[:, 1], params[:, 2]
+        coords = [jnp.log(f) - jnp.log(layout.fcap - f), jnp.log(n), jnp.log(d_f - f)]
+        if self.exposure:
+            coords += [jnp.ones_like(f), jnp.zeros_like(f)]
+        return jnp.concatenate(coords)
+
+    def theta(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, " P"]:
+        """The value of every slot in its field's own units (m, f-number, gain, offset)."""
+        p = self.natural(y, layout)
+        out = [p[:, 0], p[:, 1], p[:, 2]]
+        if self.exposure:
+            out += list(self.exposure_params(y))
+        return jnp.concatenate(out)
+
+    def lenses(self, y, layout: _Layout) -> ThinLens:
+        p = self.natural(y, layout)
+        return ThinLens(p[:, 0], p[:, 1], p[:, 2], p[:, 3])
+
+    def predict(self, y, args) -> Array:
+        """Rendered targets `(T, H, W[, C])` for parameters `y`."""
+        image, depth, _, _, layout = args
+        lenses = self.lenses(y, layout)
+        gain, offset = self.exposure_params(y)
+
+        def one(lens, g, o):
+            return g * render(image, depth, lens, max_radius=self.max_radius) + o
+
+        return jax.vmap(one)(lenses, gain, offset)
+
+    def __call__(self, y, args) -> Array:
+        """Weighted residuals, flattened: `sqrt(w) * (model - target)`.
+
+        A non-finite `y` (a failed step) gives NaN residuals, which the solver rejects, rather than
+        a lens that the render's run-time checks would refuse.
+        """
+        _, _, targets, sqrt_w, _ = args
+        r = ((self.predict(y, args) - targets) * sqrt_w).reshape(-1)
+        return jnp.where(jnp.all(jnp.isfinite(y)), r, jnp.nan)
+
+
+class _Spec:
+    """Python-side description of a fit: free/shared fields, targets, exposure -> slots and names."""
+
+    def __init__(self, free, shared, n_targets: int, exposure: bool):
+        self.free, self.shared, self.n_targets, self.exposure = free, shared, n_targets, exposure
+        used, names = [], []
+        multi = n_targets > 1
+        for j, name in enumerate(LENS_FIELDS):
+            if name not in free:
+                continue
+            ts = [0] if name in shared else range(n_targets)
+            for t in ts:
+                used.append(j * n_targets + t)
+                names.append(name if (name in shared or not multi) else f"{name}[{t}]")
+        if exposure:
+            for k, name in ((3, "gain"), (4, "offset")):
+                for t in range(n_targets):
+                    used.append(k * n_targets + t)
+                    names.append(f"{name}[{t}]" if multi else name)
+        self.used, self.names = tuple(used), tuple(names)
+
+    def layout(self, base: Array, depth: Array) -> _Layout:
+        """The `_Layout` of this fit (works on traced `base` and `depth`)."""
+        t = self.n_targets
+        shared = np.array([n in self.shared for n in LENS_FIELDS])
+        use = np.broadcast_to(np.array([n in self.free for n in LENS_FIELDS]), (t, 3))
+        src = np.arange(3)[None, :] * t + np.where(shared[None, :], 0, np.arange(t)[:, None])
+        cap = jnp.broadcast_to(jnp.min(depth).astype(base.dtype), (t,))
+        if "focus_distance" not in self.free:
+            cap = jnp.minimum(cap, base[:, 2])
+        # Everything at infinity and the focus distance free: no bound from the scene.
+        cap = jnp.where(jnp.isfinite(cap), cap, 1e3 * base[:, 0])
+        # Just under the bound: a focal length equal to the nearest depth is not a lens for it.
+        cap = cap * (1 - 1e-3)
+        return _Layout(
+            base=base,
+            src=jnp.asarray(src, jnp.int32),
+            use=jnp.asarray(use),
+            fcap=cap,
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# The result.
+# --------------------------------------------------------------------------------------------
+
+
+class FitResult(eqx.Module):
+    """The outcome of `jaxdof.fit_lens`.
+
+    **Fields:**
+
+    - `lenses`: the fitted `ThinLens`, one per target (fields of shape `(T,)`).
+    - `stderr`: standard error of each free field in its own units (metres for lengths, plain
+      number for the f-number; `gain`, `offset` with `exposure=True`): a scalar for a single
+      target, else an array `(T,)` (a shared field repeats its value).
+      `inf` marks a field that the data do not determine (only with `allow_degenerate=True`).
+    - `covariance`: covariance of the free parameters in their own units, `(p, p)`, in the order of
+      `names` (e.g. `("f_number", "focus_distance")`, or `"focus_distance[1]"` per target).
+    - `names`: the name of each row of `covariance`.
+    - `gain`, `offset`: exposure per target (1 and 0 unless `exposure=True`), `(T,)`.
+    - `loss`: `0.5 * sum(residual^2)` at the solution.
+    - `sigma`: the residual standard deviation `sqrt(SSR / (n - p))` used to scale `covariance`.
+    - `num_steps`: solver steps taken by the chosen start.
+    - `condition`: condition number of the column-scaled Jacobian at the solution.
+    - `status`: an integer code (0 converged; see `message`).
+    - `success`: `True` when the fit converged to a determined, unambiguous lens.
+    - `message`: what happened, in words.
+    - `max_radius`: the filter window (pixels) the fit used.
+
+    `lens` is the first target's lens; `summary()` formats everything as a table.
+    """
+
+    lenses: ThinLens
+    stderr: dict[str, Array]
+    covariance: Float[Array, "p p"]
+    gain: Float[Array, " t"]
+    offset: Float[Array, " t"]
+    loss: Float[Array, ""]
+    sigma: Float[Array, ""]
+    num_steps: Int[Array, ""]
+    condition: Float[Array, ""]
+    status: Int[Array, ""]
+    success: Bool[Array, ""]
+    names: tuple[str, ...] = eqx.field(static=True)
+    message: str = eqx.field(static=True, default="")
+    max_radius: float = eqx.field(static=True, default=0.0)
+
+    @property
+    def lens(self) -> ThinLens:
+        """The first target's lens."""
+        return jax.tree_util.tree_map(lambda x: x[0], self.lenses)
+
+    def summary(self) -> str:
+        """A human-readable table of the fitted lens(es), standard errors and fit statistics."""
+        lines = [f"fit_lens: {'success' if bool(self.success) else 'FAILED'}: {self.message}"]
+        n_t = int(np.shape(self.lenses.focal_length)[0])
+        for t in range(n_t):
+            lens = ThinLens(*(np.asarray(getattr(self.lenses, n))[t] for n in _ALL_FIELDS))
+            head = f"target {t}:" if n_t > 1 else "lens:"
+            lines.append(head)
+            for name in LENS_FIELDS:
+                value = float(getattr(lens, name))
+                if name in self.stderr:
+                    se = float(np.reshape(np.asarray(self.stderr[name]), -1)[t if n_t > 1 else 0])
+                    lines.append(f"  {name:15s} {value:.6g} +- {se:.2g} {_UNITS[name]}".rstrip())
+                else:
+                    lines.append(f"  {name:15s} {value:.6g} {_UNITS[name]} (fixed)".rstrip())
+            k = float(lens.blur_scale)
+            lines.append(f"  {'K (blur scale)':15s} {k:.6g} px")
+        for name in ("gain", "offset"):
+            if name in self.stderr:
+                vals = np.atleast_1d(np.asarray(getattr(self, name)))
+                ses = np.atleast_1d(np.asarray(self.stderr[name]))
+                lines.append(
+                    f"{name}: " + ", ".join(f"{v:.5g} +- {s:.2g}" for v, s in zip(vals, ses))
+                )
+        lines.append(
+            f"loss {float(self.loss):.4g}, residual sigma {float(self.sigma):.3g}, "
+            f"steps {int(self.num_steps)}, condition {float(self.condition):.3g}, "
+            f"window {self.max_radius:g} px"
+        )
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# The pure solve (jit/vmap-able) and its statistics.
+# --------------------------------------------------------------------------------------------
+
+
+def _rank_tol(dtype) -> float:
+    # Relative singular-value threshold of the column-scaled Jacobian. An exact degeneracy (f and N
+    # from one image) leaves s_min / s_max at the rounding level of the Jacobian (measured: ~1e-16
+    # in float64, ~1e-7 in float32); determined problems, including a focus bracket for f and N
+    # (the worst conditioned we support, ~1e-3), stay far above. The threshold sits between: 30x
+    # the float32 rounding level, and sqrt(eps) in float64.
+    return 3e-6 if jnp.dtype(dtype) == jnp.float32 else 1.5e-8
+
+
+def _statistics(residual, jac, g, n, used: tuple[int, ...]) -> dict[str, Array]:
+    """Loss, residual sigma, covariance in natural units, conditioning: from the full Jacobian.
+
+    `jac` `(n_res, P)` is d residual / d y, `g` `(P, P)` is d theta / d y; `used` are the slots
+    that are free. Works on tracers (`solve_lens` under vmap) and on concrete arrays.
+    """
+    idx = jnp.asarray(used)
+    jac = jac[:, idx]
+    g = g[idx][:, idx]
+    dtype = residual.dtype
+    p = len(used)
+    ssr = jnp.sum(residual * residual)
+    sigma2 = ssr / jnp.maximum(n - p, 1)
+    scale = jnp.sqrt(jnp.sum(jac * jac, axis=0))
+    safe = jnp.where(scale > 0, scale, 1)
+    # Column scaling makes the rank test independent of the units of each coordinate.
+    _, s, vt = jnp.linalg.svd(jac / safe, full_matrices=False)
+    good = s > _rank_tol(dtype) * s[0]
+    inv_s2 = jnp.where(good, 1 / jnp.where(good, s * s, 1), 0)
+    cov_y = sigma2 * ((vt.T * inv_s2) @ vt) / safe[:, None] / safe[None, :]
+    cov = g @ cov_y @ g.T  # chain rule: y (log / logit coordinates) -> each field's own units
+    # A parameter with a component along a null direction (or with a zero column) is undetermined.
+    null = jnp.where(good[:, None], 0, jnp.abs(vt))
+    undetermined = (jnp.max(null, axis=0) > 1e-3) | (scale == 0)
+    var = jnp.where(undetermined, jnp.inf, jnp.diag(cov))
+    smin = s[-1]
+    condition = jnp.where(smin > 0, s[0] / jnp.where(smin > 0, smin, 1), jnp.inf)
+    return dict(
+        loss=0.5 * ssr,
+        sigma=jnp.sqrt(sigma2),
+        covariance=cov,
+        variance=var,
+        condition=condition,
+        degenerate=~jnp.all(good) | jnp.any(scale == 0),
+        jac_zero=jnp.all(scale == 0),
+    )
+
+
+def _solve(model: _Model, solver, y0, args, max_steps: int):
+    """One least-squares solve from `y0`; returns what the statistics need. Pure."""
+    sol = optx.least_squares(model, solver, y0, args, max_steps=max_steps, throw=False)
+    y = sol.value
+    residual = model(y, args)
+    jac = jax.jacfwd(model)(y, args)  # (n, P): P forward passes, cheap for few parameters
+    g = jax.jacfwd(model.theta)(y, args[-1])
+    ok = sol.result == optx.RESULTS.successful
+    maxed = sol.result == optx.RESULTS.nonlinear_max_steps_reached
+    status = jnp.where(ok, CONVERGED, jnp.where(maxed, MAX_STEPS, SOLVER_FAILED))
+    finite = jnp.all(jnp.isfinite(residual)) & jnp.all(jnp.isfinite(jac))
+    status = jnp.where(ok & ~finite, SOLVER_FAILED, status)
+    return y, status, sol.stats["num_steps"], residual, jac, g, model.theta(y, args[-1])
+
+
+_solve_starts = eqx.filter_jit(eqx.filter_vmap(_solve, in_axes=(None, None, 0, None, None)))
+
+
+def _n_residuals(targets, sqrt_w):
+    return jnp.sum(jnp.broadcast_to(sqrt_w, targets.shape) > 0).astype(targets.dtype)
+
+
+def _assemble(spec: _Spec, model: _Model, y, status, num_steps, stats, layout, single) -> FitResult:
+    """Build a FitResult from the raw solve outputs (works on tracers)."""
+    var = stats["variance"]
+    stderr: dict[str, Array] = {}
+    for name in spec.free + (("gain", "offset") if spec.exposure else ()):
+        idx = [i for i, nm in enumerate(spec.names) if nm.split("[")[0] == name]
+        se = jnp.sqrt(var[jnp.asarray(idx)])
+        se = jnp.broadcast_to(se, (spec.n_targets,))  # a shared field repeats its one value
+        stderr[name] = se[0] if single else se
+    gain, offset = model.exposure_params(y)
+    status = jnp.where(
+        (status == CONVERGED) & stats["jac_zero"],
+        DEAD_ZONE,
+        jnp.where((status == CONVERGED) & stats["degenerate"], DEGENERATE, status),
+    )
+    return FitResult(
+        lenses=model.lenses(y, layout),
+        stderr=stderr,
+        covariance=stats["covariance"],
+        gain=gain,
+        offset=offset,
+        loss=stats["loss"],
+        sigma=stats["sigma"],
+        num_steps=jnp.asarray(num_steps),
+        condition=stats["condition"],
+        status=jnp.asarray(status),
+        success=status == CONVERGED,
+        names=spec.names,
+        message="",
+        max_radius=model.max_radius,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Input handling.
+# --------------------------------------------------------------------------------------------
+
+
+def _check_names(free, shared) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    if isinstance(free, str):
+        free = (free,)
+    if isinstance(shared, str):
+        shared = (shared,)
+    free, shared = tuple(free), tuple(shared)
+    for name in free:
+        if name == "pixel_pitch":
+            raise ValueError(
+                "pixel_pitch cannot be fitted: it scales every circle of confusion exactly as "
+                "1/K does, so it is indistinguishable from the other fields. Set it from the "
+                "sensor width (ThinLens.from_sensor) and fit the others."
+            )
+        if name not in LENS_FIELDS:
+            raise ValueError(f"free must name fields among {LENS_FIELDS}, got {name!r}")
+    if not free:
+        raise ValueError(f"free must name at least one field among {LENS_FIELDS}")
+    if len(set(free)) != len(free):
+        raise ValueError(f"free names a field twice: {free}")
+    for name in shared:
+        if name not in free:
+            raise ValueError(
+                f"shared must be a subset of free (a fixed field keeps its init value in every "
+                f"target anyway), got shared={shared}, free={free}"
+            )
+    free = tuple(n for n in LENS_FIELDS if n in free)
+    shared = tuple(n for n in LENS_FIELDS if n in shared)
+    return free, shared
+
+
+def _prepare(image, depth, targets, init, weight):
+    """Validate and convert inputs: arrays in one float dtype, targets `(T, ...)`, base `(T, 4)`."""
+    image = jnp.asarray(image)
+    depth = jnp.asarray(depth)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"image must have shape (H, W) or (H, W, C), got {image.shape}")
+    if depth.shape != image.shape[:2]:
+        raise ValueError(
+            f"depth must have the image's (H, W) = {image.shape[:2]}, got {depth.shape}"
+        )
+    single = not isinstance(targets, (list, tuple))
+    if single:
+        targets = jnp.asarray(targets)
+        if targets.shape == image.shape:
+            targets = targets[None]
+            single = True
+        elif targets.shape[1:] == image.shape:
+            single = False
+        else:
+            raise ValueError(
+                f"targets must be one image of the image's shape {image.shape}, a sequence of "
+                f"them, or an array (T, *{image.shape}); got shape {targets.shape}"
+            )
+    else:
+        if len(targets) == 0:
+            raise ValueError("targets is an empty sequence; pass at least one photo")
+        targets = [jnp.asarray(t) for t in targets]
+        for i, t in enumerate(targets):
+            if t.shape != image.shape:
+                raise ValueError(
+                    f"targets[{i}] has shape {t.shape}; every target must have the image's "
+                    f"shape {image.shape} (same scene, same framing)"
+                )
+        targets = jnp.stack(targets)
+    for name, x in (("image", image), ("depth", depth), ("targets", targets)):
+        if not jnp.issubdtype(x.dtype, jnp.floating):
+            raise ValueError(
+                f"{name} must be floating point (linear light / metres), got dtype {x.dtype}; "
+                f"convert it first, e.g. {name}.astype(numpy.float32)"
+            )
+    dtype = jnp.result_type(image.dtype, targets.dtype)
+    n_t = targets.shape[0]
+
+    if isinstance(init, ThinLens):
+        inits = [init]
+    elif isinstance(init, (list, tuple)) and all(isinstance(x, ThinLens) for x in init):
+        inits = list(init)
+    else:
+        raise ValueError(
+            f"init must be a ThinLens or a sequence of them, got {type(init).__name__}"
+        )
+    fields = [[jnp.asarray(getattr(x, name)) for name in _ALL_FIELDS] for x in inits]
+    if len(inits) == 1 and all(v.ndim == 1 for v in fields[0]) and fields[0][0].shape[0] == n_t:
+        base = jnp.stack(fields[0], axis=-1)  # one batched ThinLens with a (T,) axis
+    else:
+        for x in fields:
+            if any(v.ndim != 0 for v in x):
+                raise ValueError(
+                    "init must be scalar ThinLens(es) (one, or one per target) or one ThinLens "
+                    f"with fields of shape (T,) = ({n_t},)"
+                )
+        base = jnp.stack([jnp.stack(x) for x in fields])
+        if base.shape[0] == 1:
+            base = jnp.broadcast_to(base, (n_t, 4))
+        elif base.shape[0] != n_t:
+            raise ValueError(
+                f"init has {base.shape[0]} lenses but there are {n_t} targets; pass one or {n_t}"
+            )
+    base = base.astype(dtype)
+
+    if weight is None:
+        sqrt_w = jnp.ones((1,) * targets.ndim, dtype)
+    else:
+        weight = jnp.asarray(weight)
+        shape_ok = weight.shape in (
+            image.shape[:2],
+            (n_t, *image.shape[:2]),
+            image.shape,
+            targets.shape,
+        )
+        if not shape_ok:
+            raise ValueError(
+                f"weight must have shape (H, W) = {image.shape[:2]}, (T, H, W), the image's or the "
+                f"targets' shape; got {weight.shape}"
+            )
+        if is_concrete(weight):
+            w = np.asarray(weight)
+            if np.any(~np.isfinite(w)) or np.any(w < 0):
+                raise ValueError("weight must be finite and >= 0 (0 masks a pixel out)")
+            if not np.any(w > 0):
+                raise ValueError("weight is zero everywhere: nothing left to fit")
+        if weight.ndim == 2:
+            weight = weight[None]
+        if weight.ndim < targets.ndim:  # (T, H, W) against colour targets
+            weight = weight[..., None]
+        sqrt_w = jnp.sqrt(weight.astype(dtype))
+    return image.astype(dtype), depth.astype(dtype), targets.astype(dtype), sqrt_w, base, single
+
+
+def _max_coc(params: np.ndarray, depth: np.ndarray) -> float:
+    """Largest circle (pixels) over the finite and infinite depths for each lens row (f, N, d_f, p)."""
+    finite = depth[np.isfinite(depth)]
+    has_inf = bool(np.any(np.isinf(depth)))
+    out = 0.0
+    for f, n, d_f, pitch in np.asarray(params, np.float64).reshape(-1, 4):
+        k = f * f / (2 * n * (d_f - f) * pitch)
+        defocus = np.abs(1 - d_f / finite) if finite.size else np.zeros(1)
+        m = np.max(defocus, initial=0.0)
+        if has_inf:
+            m = max(m, 1.0)
+        out = max(out, float(k * m))
+    return out
+
+
+# Windows are rounded up to this grid so that fits of similar scenes share a compiled solve.
+_WINDOWS = (2, 3, 4, 5, 6, 8, 10, 12, 16, 20, 24, 32, 40, 48, 64, 80, 96, 128, 160, 192, 256)
+
+
+def _window(radius: float, cap: float) -> float:
+    """A window with headroom (1.5x + 1 px) over `radius`, on the grid, at most `cap`."""
+    need = 1.5 * radius + 1.0
+    w = next((float(x) for x in _WINDOWS if x >= need), float(math.ceil(need)))
+    return float(min(w, max(cap, 2.0)))
+
+
+def _start_params(
+    base: np.ndarray, free, n_starts: int, depth: np.ndarray, fcap: np.ndarray
+) -> np.ndarray:
+    """`(S, T, 4)` starting lenses.
+
+    The `init` lens first. With the focus distance free, the others place it evenly in diopters
+    across the scene's depth range (both sides of every depth: the near/far ambiguity), keeping
+    each target's blur scale `K` through `N` (or `f`) where that is free. With the focus distance
+    fixed, `K` is spread by factors of 2 (through `N`, else `f`).
+    """
+    starts = [base.copy()]
+    finite = depth[np.isfinite(depth)]
+    f, n, d_f, pitch = (base[:, i] for i in range(4))
+    k = f * f / (2 * n * (d_f - f) * pitch)
+    if "focus_distance" in free and finite.size:
+        near, far = float(np.min(finite)), float(np.max(finite))
+        if np.any(np.isinf(depth)) or far <= near * 1.01:
+            far = max(far * 4, far + 1.0)
+        lo, hi = 1 / far, 1 / near  # diopters
+        for i in range(n_starts - 1):
+            dpt = hi + (lo - hi) * (i + 0.5) / (n_starts - 1)
+            s = base.copy()
+            s[:, 2] = np.maximum(1 / dpt, f * 1.05)
+            if "f_number" in free:
+                s[:, 1] = f * f / (2 * k * (s[:, 2] - f) * pitch)
+            starts.append(s)
+    else:
+        factors = [0.5, 2.0, 0.25, 4.0, 0.125, 8.0]
+        for i in range(n_starts - 1):
+            c = factors[i % len(factors)] ** (1 + i // len(factors))
+            s = base.copy()
+            if "f_number" in free:
+                s[:, 1] = n / c
+            elif "focal_length" in free:
+                s[:, 0] = np.minimum(f * math.sqrt(c), 0.9 * fcap)  # K ~ f^2 for f << d_f
+            starts.append(s)
+    return np.stack(starts)
+
+
+def _verbose_printer(model: _Model, layout: _Layout):
+    """An optimistix `verbose` callable that prints step, loss and the current lens."""
+    layout = jax.tree_util.tree_map(np.asarray, layout)
+
+    def show(step, loss, y):
+        ys = np.asarray(y).reshape(-1, np.shape(y)[-1])
+        steps, losses = np.reshape(step, -1), np.reshape(loss, -1)
+        for i, yi in enumerate(ys):
+            rows = np.asarray(
+                model.natural(jnp.asarray(yi), jax.tree_util.tree_map(jnp.asarray, layout))
+            )
+            parts = []
+            for t, (f, n, d_f, _) in enumerate(rows):
+                tag = f"[{t}]" if model.n_targets > 1 else ""
+                parts.append(f"f{tag}={f * 1e3:.5g} mm N{tag}={n:.5g} d_f{tag}={d_f:.6g} m")
+            head = f"start {i} " if len(ys) > 1 else ""
+            st = int(steps[min(i, len(steps) - 1)])
+            ls = float(losses[min(i, len(losses) - 1)])
+            print(f"{head}step {st}: loss {ls:.6g}  " + "  ".join(parts), flush=True)
+
+    def verbose(**kwargs):
+        jax.debug.callback(
+            show,
+            kwargs["num_steps"][1],
+            kwargs["loss_last_accepted_step"][1],
+            kwargs["y_last_accepted_step"][1],
+        )
+
+    return verbose
+
+
+# --------------------------------------------------------------------------------------------
+# Public API.
+# --------------------------------------------------------------------------------------------
+
+
+def solve_lens(
+    image: ArrayLike,
+    depth: ArrayLike,
+    targets: ArrayLike,
+    init: ThinLens,
+    *,
+    max_radius: float,
+    free: Sequence[str] = ("focus_distance", "f_number"),
+    shared: Sequence[str] = (),
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 100,
+    weight: ArrayLike | None = None,
+    exposure: bool = False,
+) -> FitResult:
+    """The pure core of `fit_lens`: one solve from `init`, with no checks that need values.
+
+    Use it to fit many independent scenes with `jax.vmap` (one compilation for the batch), e.g.
+    `jax.jit(jax.vmap(lambda im, z, t: solve_lens(im, z, t, init, max_radius=8.0)))`. Arguments
+    are as in `fit_lens`, except that `max_radius` (pixels) is required and static, only `init`
+    is tried (no multi-start), and nothing is raised: read `.status` / `.success` (a degenerate
+    free set gives `status == 4`, circles all under half a pixel `status == 3`). Circles above
+    `max_radius` are clamped and not detected here; `message` is empty.
+    """
+    free, shared = _check_names(free, shared)
+    image, depth, targets, sqrt_w, base, single = _prepare(image, depth, targets, init, weight)
+    spec = _Spec(free, shared, targets.shape[0], bool(exposure))
+    t = targets.shape[0]
+    layout = spec.layout(base, depth)
+    model = _Model(t, float(max_radius), bool(exposure))
+    if solver is None:
+        tol = _default_tol(image.dtype)
+        solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    args = (image, depth, targets, sqrt_w, layout)
+    y0 = model.pack(base, layout)
+    y, status, num_steps, residual, jac, g, _ = _solve(model, solver, y0, args, int(max_steps))
+    stats = _statistics(residual, jac, g, _n_residuals(targets, sqrt_w), spec.used)
+    return _assemble(spec, model, y, status, num_steps, stats, layout, single)
+
+
+def fit_lens(
+    image: ArrayLike,
+    depth: ArrayLike,
+    targets: ArrayLike | Sequence[ArrayLike],
+    init: ThinLens | Sequence[ThinLens],
+    *,
+    free: Sequence[str] = ("focus_distance", "f_number"),
+    shared: Sequence[str] = (),
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 100,
+    weight: ArrayLike | None = None,
+    max_radius: float | None = None,
+    allow_degenerate: bool = False,
+    exposure: bool = False,
+    starts: int | None = None,
+    verbose: bool | Callable[..., None] = False,
+) -> FitResult:
+    r"""Recover lens parameters from defocused photos of a scene with known image and depth.
+
+    Minimises `sum w (gain_t * render(image, depth, lens_t) + offset_t - targets[t])^2` (linear
+    light) over the `free` lens fields with an optimistix least-squares solver, from a few starts,
+    and reports the best fit with standard errors.
+
+    **Arguments:**
+
+    - `image`: the all-in-focus linear-light image, `(H, W)` or `(H, W, C)`.
+    - `depth`: z-depth of every pixel (m), `(H, W)`, beyond the focal length; `inf` allowed.
+    - `targets`: the defocused photo(s): one image like `image`, a sequence of them, or an array
+      `(T, *image.shape)`.
+    - `init`: a `ThinLens` (used for every target) or one per target: the start, and the value of
+      every field that is not free. Its `pixel_pitch` is always fixed.
+    - `free`: the fields to fit, among `"focal_length"`, `"f_number"`, `"focus_distance"`.
+    - `shared`: the free fields that take one value across all targets (a focus bracket:
+      `shared=("focal_length", "f_number")`, with `focus_distance` free per target).
+    - `solver`: any optimistix least-squares solver; default
+      `optx.LevenbergMarquardt(rtol=tol, atol=tol)` with `tol = 1e-8` (float64) or `1e-5`
+      (float32): steps in the log coordinates below that are at float32's rounding floor.
+    - `max_steps`: solver step limit per start.
+    - `weight`: optional per-pixel weight `>= 0` (an inverse variance, or a 0/1 mask), `(H, W)`,
+      `(T, H, W)`, or the image's/targets' shape.
+    - `max_radius`: the filter window (pixels, static). `None` picks one with headroom over the
+      circles of every start and refits with a larger one if the solution's circles outgrow it.
+      Circles above the window are clamped (see `jaxdof.coc_filter`), so a given value must
+      exceed the true largest circle.
+    - `allow_degenerate`: return a fit whose free fields the data cannot all determine (with
+      `success=False` and `inf` standard errors for the undetermined fields) instead of raising.
+    - `exposure`: also fit a gain and an offset per target (nuisance parameters).
+    - `starts`: number of starting points (default 4 when the focus distance is free, else 3): the
+      `init` lens, then focus distances spread evenly in diopters over the scene's depth range
+      (keeping `K` through `N` where possible), which covers the near/far ambiguity; with the focus
+      distance fixed, `K` spread by factors of 2. All starts run as one vmapped solve.
+    - `verbose`: `True` prints step, loss and the current lens of every start while solving; a
+      callable is passed to the optimistix solver as its `verbose` (it receives `(name, value)`
+      pairs, with `y` in the solver's coordinates).
+
+    **Returns:** a `FitResult`. `success` is `False`, with the reason in `message`, when the best
+    start did not converge, when distinct lenses fit equally well, when the circles outgrow a given
+    window, or (with `allow_degenerate`) when the free set is not determined.
+
+    **Raises:** `ValueError` for bad inputs, and when the data cannot determine the free fields
+    (the column-scaled Jacobian at the solution is rank deficient): from one photo, blur depends on
+    the lens only through `K = f^2 / (2 N (d_f - f))` and `d_f`, so `focal_length` and `f_number`
+    cannot both be free; also when every circle is under half a pixel (the render does not depend
+    on the lens at all, a zero Jacobian).
+
+    **Statistics.** With `J` the Jacobian of the weighted residuals at the solution,
+    `cov = sigma^2 (J^T J)^{-1}` with `sigma^2 = SSR / (n - p)` (Gauss-Newton; `n` residuals with
+    non-zero weight, `p` free parameters), mapped from the solver's coordinates to each field's
+    units by the chain rule. For Gaussian pixel noise these are the asymptotic (Cramér-Rao) errors.
+    Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
+    """
+    free, shared = _check_names(free, shared)
+    image, depth, targets, sqrt_w, base, single = _prepare(image, depth, targets, init, weight)
+    if not is_concrete(image, depth, targets, base, sqrt_w):
+        raise ValueError(
+            "fit_lens needs concrete inputs (it picks starts and a window, and reports in Python); "
+            "under jit/vmap use jaxdof.solve_lens with a static max_radius."
+        )
+    d = np.asarray(depth, np.float64)
+    b = np.asarray(base, np.float64)
+    for name, x in (("image", image), ("targets", targets)):
+        if not np.all(np.isfinite(np.asarray(x))):
+            raise ValueError(
+                f"{name} contains NaN or inf; mask such pixels with weight=0 and set them to 0"
+            )
+    if np.any(np.isnan(d)) or not np.all(d > b[:, 0].max()):
+        raise ValueError(
+            f"depth must exceed the focal length everywhere (metres; found min depth {np.nanmin(d)} m "
+            f"or NaN, focal length {b[:, 0].max()} m)"
+        )
+    n_t = targets.shape[0]
+    if int(max_steps) < 1:
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
+    if starts is None:
+        starts = 4 if "focus_distance" in free else 3
+    if int(starts) < 1:
+        raise ValueError(f"starts must be >= 1, got {starts}")
+    if verbose is not False and verbose is not True and not callable(verbose):
+        raise ValueError(f"verbose must be a bool or a callable, got {verbose!r}")
+
+    dtype = image.dtype
+    spec = _Spec(free, shared, n_t, bool(exposure))
+    layout = spec.layout(base, d)
+    fcap = np.asarray(layout.fcap, np.float64)
+    if np.any(b[:, 0] >= fcap):
+        raise ValueError(
+            "init.focal_length must be below the nearest depth (and the focus distance): "
+            f"got {b[:, 0]} m against a bound of {fcap} m"
+        )
+    if solver is None:
+        tol = _default_tol(dtype)
+        solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    if verbose is not False and not hasattr(solver, "verbose"):
+        raise ValueError(
+            f"verbose needs a solver with a `verbose` field, got {type(solver).__name__}"
+        )
+    cap = float(max(image.shape[0], image.shape[1]))
+    start_params = _start_params(b, free, int(starts), d, fcap)
+    user_window = max_radius is not None
+    if user_window:
+        window = float(max_radius)
+        if not math.isfinite(window) or window < 0:
+            raise ValueError(f"max_radius must be a finite number >= 0 (pixels), got {max_radius}")
+    else:
+        window = _window(_max_coc(start_params, d), cap)
+
+    args = (image, depth, targets, sqrt_w, layout)
+    n_res = _n_residuals(targets, sqrt_w)
+    notes = []
+    y0s = None
+    for _ in range(3):
+        model = _Model(n_t, window, bool(exposure))
+        fit_solver = solver
+        if verbose is not False:
+            fn = verbose if callable(verbose) else _verbose_printer(model, layout)
+            fit_solver = eqx.tree_at(lambda s: s.verbose, solver, fn)
+        if y0s is None:
+            y0s = jnp.stack([model.pack(jnp.asarray(s, dtype), layout) for s in start_params])
+        ys, status, num_steps, residual, jac, g, theta = _solve_starts(
+            model, fit_solver, y0s, args, int(max_steps)
+        )
+        loss = 0.5 * np.sum(np.asarray(residual, np.float64) ** 2, axis=-1)
+        loss = np.where(np.isfinite(loss), loss, np.inf)
+        converged = np.asarray(status) == CONVERGED
+        best = int(np.lexsort((loss, ~converged))[0])  # converged first, then the lowest loss
+        final = np.asarray(model.natural(ys[best], layout), np.float64)
+        r_final = _max_coc(final, d)
+        if r_final <= window or user_window:
+            break
+        notes.append(
+            f"the window {window:g} px was too small for the fitted circles ({r_final:.3g} px); refitted"
+        )
+        window = _window(r_final, max(cap, 1.5 * r_final + 1.0))
+        y0s = jnp.concatenate([ys[best][None], ys], axis=0)
+
+    stats = _statistics(residual[best], jac[best], g[best], n_res, spec.used)
+    result = _assemble(spec, model, ys[best], status[best], num_steps[best], stats, layout, single)
+    code = int(result.status)
+
+    # The near/far ambiguity: another converged start at a distinct lens, with a loss the noise
+    # cannot tell from the best one (within ~2 sigma^2 per parameter, or rounding when noise-free).
+    theta = np.asarray(theta, np.float64)[:, list(spec.used)]
+    if code == CONVERGED and len(loss) > 1:
+        sigma2 = float(stats["sigma"]) ** 2
+        p = len(spec.used)
+        floor = float(jnp.finfo(dtype).eps) * float(np.sum(np.asarray(targets, np.float64) ** 2))
+        se = np.sqrt(np.maximum(np.asarray(stats["variance"], np.float64), 0))
+        for i in np.argsort(loss):
+            if i == best or not converged[i]:
+                continue
+            tie = loss[i] - loss[best] <= 2.0 * sigma2 * p + 10 * floor
+            far = np.any(np.abs(theta[i] - theta[best]) > 10 * se + 1e-3 * np.abs(theta[best]))
+            if tie and far:
+                code = AMBIGUOUS
+                alt = ", ".join(f"{n}={v:.5g}" for n, v in zip(spec.names, theta[i]))
+                notes.append(
+                    f"another start converged to {alt} with loss {loss[i]:.4g} (best {loss[best]:.4g}); "
+                    "add a photo at another focus distance, or fix the focus distance"
+                )
+                break
+
+    if r_final > window:
+        code = WINDOW if code == CONVERGED else code
+        notes.append(
+            f"the fitted lens makes circles up to {r_final:.3g} px but max_radius={window:g}: "
+            "pass a larger max_radius"
+        )
+
+    msg = _STATUS_TEXT[code]
+    if code in (DEGENERATE, DEAD_ZONE):
+        explain = _degeneracy_text(code, free, shared, n_t, float(result.condition))
+        if not allow_degenerate:
+            raise ValueError(explain)
+        msg = explain
+    if code == MAX_STEPS:
+        msg += f" ({max_steps}); increase max_steps or give a closer init"
+    if notes:
+        msg += "; " + "; ".join(notes)
+    return dataclasses.replace(
+        result, status=jnp.asarray(code), success=jnp.asarray(code == CONVERGED), message=msg
+    )
+
+
+def _degeneracy_text(code, free, shared, n_t, condition) -> str:
+    if code == DEAD_ZONE:
+        return (
+            "fit_lens: every circle of confusion is under half a pixel at the solution, where the "
+            "render does not depend on the lens (zero Jacobian): the photo looks in focus "
+            "everywhere to this model. Start from a lens with more blur (a smaller f_number or a "
+            "closer/farther focus distance), check that the targets are really defocused, or "
+            "pass allow_degenerate=True to get this fit anyway."
+        )
+    return (
+        f"fit_lens: the free set {free} (shared {shared}, {n_t} target(s)) is not determined by the "
+        f"data: the column-scaled Jacobian at the solution is rank deficient (condition number "
+        f"{condition:.3g}). From a single photo the circle of confusion depends on the lens only "
+        "through K = f^2 / (2 N (d_f - f)) and the focus distance d_f, so focal_length and f_number "
+        "cannot both be fitted. Fixes: fix one of them from the EXIF data (drop it from free), or "
+        "fit a focus bracket: several photos with different focus distances, "
+        "free=('focal_length', 'f_number', 'focus_distance'), shared=('focal_length', 'f_number'). "
+        "Pass allow_degenerate=True to get the (non-unique) fit anyway."
+    )
