@@ -1,6 +1,7 @@
 import importlib.metadata
 
 from ._filters import coc_filter as coc_filter
+from ._fit import FitResult as FitResult, fit_lens as fit_lens, solve_lens as solve_lens
 from ._lens import (
     ThinLens as ThinLens,
     coc_radius as coc_radius,
