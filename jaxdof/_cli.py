@@ -202,7 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="jaxdof",
         description="Differentiable thin-lens depth of field: render defocus blur from an "
         "all-in-focus image and a depth map, or calibrate a lens from photos.",
-        epilog="Run 'jaxdof COMMAND --help' for each command's options and examples.",
+        epilog="Run 'jaxdof COMMAND --help' for each command's options and examples.\n"
+        "Exit status: 0 done, 1 the fit did not converge, 2 bad input (one line on stderr).",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"jaxdof {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -339,9 +341,9 @@ def _check_plot(path: str | None, inputs: list[str], option: str) -> None:
         import matplotlib  # noqa: F401
     except ImportError:
         raise InputError(f"{option} needs matplotlib: pip install 'jaxdof[plot]'") from None
+    check_output(path, inputs, option)
     if os.path.splitext(path)[1].lower() != ".png":
         raise InputError(f"{option} {path}: the figure is written as PNG; name it *.png")
-    check_output(path, inputs, option)
 
 
 def _display(image: np.ndarray) -> np.ndarray:
@@ -488,6 +490,13 @@ def run_fit(args) -> int:
     bad = set(args.shared) - set(args.free)
     if bad:
         raise InputError(f"--shared {' '.join(sorted(bad))}: only free fields can be shared")
+    both = {"focal_length", "f_number"}
+    if both <= set(args.free) and (len(targets) == 1 or not both <= set(args.shared)):
+        raise InputError(
+            "--free focal_length f_number: one photo cannot tell them apart (its blur depends on "
+            "the lens through K = f^2/(2N(d_f - f)) and d_f only); hold one, or fit a focus "
+            "bracket of several TARGETs with --shared focal_length f_number"
+        )
     if args.max_steps < 1:
         raise InputError(f"--max-steps {args.max_steps}: must be at least 1")
     focus = args.focus if args.focus is not None else float(np.median(depth))

@@ -1,0 +1,314 @@
+"""The `jaxdof` command line, run as a user runs it: in a subprocess, on small files.
+
+Each subprocess pays for importing JAX and compiling (seconds; a fit compiles for ~20 s of CPU),
+so the runs are few: `demo`, one `fit`, two `render`s, two real bad-input runs (the `jaxdof`
+script and `python -m jaxdof`), and one subprocess that feeds the whole table of bad inputs to
+`jaxdof._cli.main`, the function both entry points call and whose return value is their exit
+status. A traceback there fails the test (it would escape `main`).
+"""
+
+import hashlib
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from jaxdof import _io
+from jaxdof._cli import demo_scene, main
+
+
+H, W = 24, 32
+SENSOR = "12mm"  # pixel pitch 12 mm / 32 = 0.375 mm: circles of up to ~3.5 px on this scene
+TRUTH = {"focal_length": 0.085, "f_number": 1.4, "focus_distance": 3.0}
+ENV = {**os.environ, "JAX_PLATFORMS": "cpu"}
+
+
+def _lens(jaxdof, f_number=1.4, focus=3.0):
+    return jaxdof.ThinLens.from_sensor(0.085, f_number, focus, sensor_width=0.012, image_width=W)
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """Small input files (and bad ones) in one folder, with the SHA-256 of each."""
+    import jaxdof
+
+    d = tmp_path_factory.mktemp("cli")
+    image, depth = demo_scene(H, W)
+    codes = np.round(_io.linear_to_srgb(image) * 255).astype(np.uint8)
+    iio.imwrite(d / "sharp.png", codes)
+    linear = _io.read_image(str(d / "sharp.png")).array  # what the CLI sees
+    np.save(d / "depth.npy", depth)
+    iio.imwrite(d / "sharp.tif", linear)
+    iio.imwrite(d / "depth_mm.png", np.round(depth * 1000).astype(np.uint16))
+    target = np.asarray(jaxdof.render(linear, depth, _lens(jaxdof)))
+    for name in ("target.npy", "near.npy", "far.npy"):  # near/far: stand-ins of the same size
+        np.save(d / name, target)
+    np.save(d / "small.npy", np.ones((H - 1, W), np.float32))
+    np.save(d / "small3.npy", np.ones((H, W - 1, 3), np.float32))
+    np.save(d / "nan.npy", np.where(np.arange(W) == 3, np.nan, depth).astype(np.float32))
+    np.save(d / "zero.npy", np.where(np.arange(W) == 3, 0.0, depth).astype(np.float32))
+    np.save(d / "close.npy", np.where(np.arange(W) == 3, 0.05, depth).astype(np.float32))
+    np.save(d / "pickled.npy", np.array([{"depth": 1}], dtype=object), allow_pickle=True)
+    (d / "garbage.png").write_bytes(b"this is not a png")
+    (d / "sharp.bmp").write_bytes((d / "sharp.png").read_bytes())
+    hashes = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in d.iterdir()}
+    return d, hashes, linear, depth
+
+
+def _unchanged(d, hashes):
+    now = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in d.iterdir()}
+    assert {k: now.get(k) for k in hashes} == hashes, "an input file changed"
+
+
+def _run(args, cwd, *, script=False):
+    cmd = (
+        [os.path.join(os.path.dirname(sys.executable), "jaxdof")]
+        if script
+        else [sys.executable, "-m", "jaxdof"]
+    )
+    return subprocess.run(cmd + args, cwd=cwd, env=ENV, capture_output=True, text=True, timeout=600)
+
+
+LENS = ["--focal-length", "85mm", "--f-number", "1.4", "--focus", "3m", "--sensor-width", SENSOR]
+
+
+# ---------------------------------------------------------------------------------------------
+# Help (in-process: argparse only)
+
+
+@pytest.mark.parametrize("command", [[], ["demo"], ["render"], ["fit"]])
+def test_help(command, capsys):
+    assert main([*command, "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("usage: jaxdof")
+    assert ("examples:" in out) == bool(command)
+
+
+# ---------------------------------------------------------------------------------------------
+# Success paths
+
+
+def test_render_png(files):
+    d, hashes, linear, depth = files
+    import jaxdof
+
+    res = _run(["render", "sharp.png", "depth.npy", "-o", "out.png", *LENS], d)
+    assert res.returncode == 0, res.stderr
+    assert "wrote out.png" in res.stdout
+    out = iio.imread(d / "out.png")
+    assert out.dtype == np.uint8 and out.shape == (H, W, 3)  # 8-bit in, 8-bit sRGB out
+    expect = np.asarray(jaxdof.render(linear, depth, _lens(jaxdof)), np.float64)
+    # One code of rounding on each side (here float64 lens, there float32).
+    assert np.max(np.abs(out.astype(float) - np.round(_io.linear_to_srgb(expect) * 255))) <= 1
+    _unchanged(d, hashes)
+    (d / "out.png").unlink()
+
+
+def test_render_float_tiff_and_millimetre_png(files):
+    d, hashes, linear, depth = files
+    import jaxdof
+
+    args = ["render", "sharp.tif", "depth_mm.png", "--depth-scale", "1mm", "-o", "out.npy"]
+    res = _run([*args, *LENS, "--normalize"], d)
+    assert res.returncode == 0, res.stderr
+    out = np.load(d / "out.npy")
+    assert out.dtype == np.float32 and out.shape == (H, W, 3)  # float in, float linear out
+    depth_mm = np.round(depth.astype(np.float64) * 1000) / 1000  # what the 16-bit PNG holds
+    expect = jaxdof.render(linear, depth_mm.astype(np.float32), _lens(jaxdof), normalize=True)
+    # float32 rendering there, float32 image/depth with a float64 lens here: a few ulps.
+    np.testing.assert_allclose(out, np.asarray(expect), rtol=1e-5, atol=1e-6)
+    _unchanged(d, hashes)
+    (d / "out.npy").unlink()
+
+
+def test_fit_json_and_plot(files):
+    d, hashes, _, _ = files
+    start = ["--focal-length", "85mm", "--f-number", "4", "--focus", "5m", "--sensor-width", SENSOR]
+    res = _run(
+        ["fit", "sharp.png", "depth.npy", "target.npy", *start, "--json", "--plot", "fit.png"], d
+    )
+    assert res.returncode == 0, res.stderr
+    obj = json.loads(res.stdout)  # exactly one JSON object on stdout
+    assert obj["success"] is True and obj["steps"] > 0 and obj["loss"] >= 0
+    assert set(obj["stderr"]) == {"f_number", "focus_distance"}
+    assert obj["pixel_pitch"] == pytest.approx(0.012 / W)
+    # A noise-free target rendered by the same float32 model: the optimum is the truth, reached
+    # to float32 solver precision (the fit's tolerance is 1e-5 in log coordinates).
+    for name, value in TRUTH.items():
+        assert obj[name] == pytest.approx(value, rel=1e-3), name
+    assert len(obj["lenses"]) == 1 and obj["lenses"][0]["focus_distance"] == obj["focus_distance"]
+    assert "loss" in res.stderr  # progress goes to stderr
+    assert iio.imread(d / "fit.png").ndim == 3
+    _unchanged(d, hashes)
+    (d / "fit.png").unlink()
+
+
+def test_fit_several_targets_output(files, monkeypatch, capsys):
+    """The text and JSON layout for several targets (in-process, with the solver stubbed out:
+    the fit itself is covered above and by examples/focus_bracket.py; this checks the CLI's
+    reading of a `FitResult` with one lens per target)."""
+    import jax.numpy as jnp
+
+    import jaxdof
+    from jaxdof import _fit
+
+    d, hashes, _, _ = files
+    lenses = jaxdof.ThinLens(
+        jnp.array([0.085, 0.085]), jnp.array([1.4, 1.4]), jnp.array([2.0, 4.5]), 0.012 / W
+    )
+    stderr = {"f_number": jnp.array([0.01, 0.01]), "focus_distance": jnp.array([0.02, 0.03])}
+    fake = _fit.FitResult(
+        lenses=lenses,
+        stderr=stderr,
+        covariance=jnp.zeros((3, 3)),
+        gain=jnp.ones(2),
+        offset=jnp.zeros(2),
+        loss=jnp.array(0.5),
+        sigma=jnp.array(0.1),
+        num_steps=jnp.array(7),
+        condition=jnp.array(1.0),
+        status=jnp.array(0),
+        success=jnp.array(True),
+        names=("f_number", "focus_distance[0]", "focus_distance[1]"),
+        message="converged",
+    )
+    calls = []
+    monkeypatch.setattr(_fit, "fit_lens", lambda *a, **k: calls.append((a, k)) or fake)
+    monkeypatch.chdir(d)
+    start = ["--focal-length", "85mm", "--sensor-width", SENSOR, "--shared", "f_number"]
+    assert main(["fit", "sharp.png", "depth.npy", "near.npy", "far.npy", *start, "--json"]) == 0
+    (image, depth, targets, init), kwargs = calls[0]
+    assert targets.shape == (2, H, W, 3) and kwargs["shared"] == ("f_number",)
+    obj = json.loads(capsys.readouterr().out)
+    assert [x["focus_distance"] for x in obj["lenses"]] == [2.0, 4.5]
+    assert [x["stderr"]["focus_distance"] for x in obj["lenses"]] == [0.02, 0.03]
+    assert obj["focus_distance"] == 2.0 and obj["steps"] == 7 and obj["success"] is True
+    assert main(["fit", "sharp.png", "depth.npy", "near.npy", "far.npy", *start, "--quiet"]) == 0
+    text = capsys.readouterr().out
+    assert "target far.npy:" in text and "4.5 m ± 0.03" in text and "converged" in text
+    _unchanged(d, hashes)
+
+
+def test_demo(tmp_path):
+    res = _run(["demo", "--out", "demo.png"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    assert "truth" in res.stdout and "recovered" in res.stdout and "converged" in res.stdout
+    assert iio.imread(tmp_path / "demo.png").ndim == 3
+
+
+# ---------------------------------------------------------------------------------------------
+# Bad input: exit status 2, one line on stderr naming the file or option, inputs untouched
+
+
+def _one_line(stderr: str) -> str:
+    assert "Traceback" not in stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1, stderr
+    return lines[0]
+
+
+def test_bad_input_script_and_module(files):
+    d, hashes, _, _ = files
+    res = _run(["render", "sharp.png", "pickled.npy", "-o", "o.png", *LENS], d, script=True)
+    assert res.returncode == 2
+    assert "pickled.npy" in _one_line(res.stderr) and "pickled" in res.stderr
+    res = _run(["render", "missing.png", "depth.npy", "-o", "o.png", *LENS], d)
+    assert res.returncode == 2
+    assert "missing.png: no such file" in _one_line(res.stderr)
+    assert not (d / "o.png").exists()
+    _unchanged(d, hashes)
+
+
+R = ["render", "sharp.png", "depth.npy", "-o", "o.png"]
+F = [
+    "fit",
+    "sharp.png",
+    "depth.npy",
+    "target.npy",
+    "--focal-length",
+    "85mm",
+    "--sensor-width",
+    SENSOR,
+]
+BAD = [  # (argv, text the one line must contain)
+    (["render", "missing.png", "depth.npy", "-o", "o.png", *LENS], "missing.png: no such file"),
+    (["render", "garbage.png", "depth.npy", "-o", "o.png", *LENS], "garbage.png: not a valid PNG"),
+    (["render", "sharp.bmp", "depth.npy", "-o", "o.png", *LENS], "sharp.bmp: unsupported format"),
+    (["render", "sharp.png", "pickled.npy", "-o", "o.png", *LENS], "pickled.npy: holds pickled"),
+    (["render", "sharp.png", "small.npy", "-o", "o.png", *LENS], "small.npy: depth is 23x32"),
+    (["render", "sharp.png", "nan.npy", "-o", "o.png", *LENS], "nan.npy: depth contains NaN"),
+    (["render", "sharp.png", "zero.npy", "-o", "o.png", *LENS], "zero.npy: depth must be positive"),
+    (["render", "sharp.png", "close.npy", "-o", "o.png", *LENS], "close.npy: nearest depth 0.05"),
+    (
+        ["render", "sharp.png", "depth_mm.png", "-o", "o.png", *LENS],
+        "depth_mm.png: integer depth needs --depth-scale",
+    ),
+    (["render", "sharp.png", "depth.npy", "--zbuffer", "-o", "o.png", *LENS], "--near and --far"),
+    (["render", "sharp.png", "depth.npy", "-o", "sharp.png", *LENS], "sharp.png: is also an input"),
+    (
+        ["render", "sharp.png", "depth.npy", "-o", "o.bmp", *LENS],
+        "o.bmp: unsupported output format",
+    ),
+    (
+        [*R, *LENS[:-2], "--sensor-width", "12 inches"],
+        "argument --sensor-width: bad length '12 inches'",
+    ),
+    ([*R, *LENS[:4], "--focus", "3km"], "argument --focus: bad length '3km'"),
+    ([*R, *LENS[:4], "--focus=-3m"], "argument --focus: bad length '-3m'"),
+    ([*R, *LENS[:4], "--focus", "5cm"], "--focus 0.05 m must exceed --focal-length 85mm"),
+    ([*R, "--focal-length", "85", *LENS[2:]], "--focal-length 85 m is not a camera lens"),
+    ([*R, *LENS[:2], "--f-number", "0", *LENS[4:]], "argument --f-number: '0' must be positive"),
+    ([*R, *LENS[:2], "--f-number", "nan", *LENS[4:]], "argument --f-number"),
+    ([*R, *LENS[:4]], "the following arguments are required: --focus"),
+    ([*R, *LENS, "--method", "magic"], "argument --method: invalid choice"),
+    ([*R, *LENS, "--max-radius", "-1"], "argument --max-radius"),
+    ([*F[:3], "small3.npy", *F[4:]], "small3.npy: target has shape (24, 31, 3)"),
+    ([*F[:3], "missing.npy", *F[4:]], "missing.npy: no such file"),
+    ([*F, "--free", "focal_length", "f_number"], "--free focal_length f_number: one photo"),
+    ([*F, "--shared", "focal_length"], "--shared focal_length: only free fields"),
+    ([*F, "--free", "aperture"], "argument --free: invalid choice"),
+    ([*F, "--max-steps", "0"], "--max-steps 0"),
+    ([*F, "--plot", "fit.jpg"], "--plot fit.jpg: the figure is written as PNG"),
+    ([*F, "--plot", "target.npy"], "--plot target.npy: is also an input"),
+    (["demo", "--out", "demo.jpg"], "--out demo.jpg"),
+    (["render"], "the following arguments are required"),
+    (["unknown"], "invalid choice: 'unknown'"),
+]
+
+_DRIVER = """
+import contextlib, io, json, sys
+from jaxdof._cli import main
+results = []
+for argv in json.loads(sys.stdin.read()):
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        code = main(argv)
+    results.append([code, err.getvalue()])
+print(json.dumps(results))
+"""
+
+
+def test_bad_inputs(files):
+    d, hashes, _, _ = files
+    res = subprocess.run(
+        [sys.executable, "-c", _DRIVER],
+        input=json.dumps([argv for argv, _ in BAD]),
+        cwd=d,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert res.returncode == 0, res.stderr  # no exception escaped main()
+    for (argv, expect), (code, stderr) in zip(BAD, json.loads(res.stdout), strict=True):
+        assert code == 2, (argv, stderr)
+        line = _one_line(stderr)
+        assert line.startswith("jaxdof"), line
+        assert expect in line, (argv, line)
+    _unchanged(d, hashes)
+    assert sorted(p.name for p in pathlib.Path(d).iterdir()) == sorted(hashes)  # nothing written
