@@ -17,6 +17,12 @@ def render(
     method: str = "soft",
     max_radius: float | None = None,
     normalize: bool = False,
+    samples: int | None = None,
+    key=None,
+    pattern: str | None = None,
+    blades: int | None = None,
+    rotation: float | None = None,
+    layers: int | None = None,
 ) -> Image:
     """Render the depth of field of `lens` from an all-in-focus image and its depth map.
 
@@ -27,7 +33,8 @@ def render(
     - `image`: all-in-focus linear-light image, `(H, W)` or `(H, W, C)`.
     - `depth`: z-depth along the optical axis (m), `(H, W)`, `> lens.focal_length`; `inf` allowed.
     - `lens`: the `ThinLens`.
-    - `method`, `normalize`: as in `coc_filter`.
+    - `method`, `normalize`, and the method's knobs (`samples`, `key`, `pattern`, `blades`,
+      `rotation`, `layers`): as in `coc_filter`.
     - `max_radius`: window size in pixels. `None` (the default) uses the smallest window that covers
       the largest circle in the scene, which needs concrete inputs; under `jit` pass a number.
 
@@ -54,4 +61,13 @@ def render(
     _check_depth(depth, lens)  # concrete: ValueError now
     depth = _error_if_invalid(depth, lens)  # traced: error at run time (equinox.error_if)
     radius = coc_radius(depth, lens).astype(jnp.result_type(image.dtype, depth.dtype))
-    return coc_filter(image, radius, method=method, max_radius=max_radius, normalize=normalize)
+    knobs = dict(samples=samples, key=key, pattern=pattern, blades=blades, rotation=rotation)
+    return coc_filter(
+        image,
+        radius,
+        method=method,
+        max_radius=max_radius,
+        normalize=normalize,
+        layers=layers,
+        **knobs,
+    )
