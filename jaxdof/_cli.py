@@ -460,7 +460,9 @@ def _progress(quiet: bool):
             print(f"  step {int(step):4d}  loss {float(loss):.6g}", file=sys.stderr, flush=True)
 
     def verbose(**kwargs):
-        jax.debug.callback(show, kwargs["num_steps"][1], kwargs["loss_last_accepted_step"][1])
+        # optimistix >= 0.1 passes (description, value) pairs; other solvers may pass fewer.
+        if "num_steps" in kwargs and "loss_last_accepted_step" in kwargs:
+            jax.debug.callback(show, kwargs["num_steps"][1], kwargs["loss_last_accepted_step"][1])
 
     return verbose
 
