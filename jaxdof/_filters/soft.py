@@ -10,8 +10,8 @@ Two things make it cheap:
 - **Symmetry.** A disc is symmetric under the eight reflections of the square grid, so
   `w(o, r)` is the same for the up-to-eight offsets `(±oy, ±ox), (±ox, ±oy)`. The weight is computed
   once per *canonical* offset `0 <= oy <= ox`, on the source grid, and the weighted source image is
-  added at every mirrored offset: about one eighth of the weight evaluations, and the mirrored
-  additions read the same array.
+  scattered to every mirrored offset: about one eighth of the weight evaluations, and the mirrored
+  additions read the same array (`symmetric_gather`).
 - **A lean per-tap formula** (`tap_area`): two square roots locate the arc's end points, and the
   thin circular segment under the chord comes from one series in the sine of the quarter
   angle that converges over the whole range, so no branch is evaluated and thrown away.
@@ -69,6 +69,12 @@ def _arc_series(dtype) -> list[float]:
     return [4 * _c(k) / (2 * k + 1) for k in range(_num_terms(dtype, _T2_MAX))]
 
 
+def _sqrt0(x: Array) -> Array:
+    """`sqrt(max(x, 0))` whose derivatives of every order stay finite (0) at and below 0."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1)), 0)
+
+
 def tap_area(ax, bx, ay, by, r, *, with_arc: bool = False):
     r"""Area (and arc length inside) of `disc(0, r) ∩ [ax, bx] x [ay, by]`, first quadrant.
 
@@ -93,12 +99,12 @@ def tap_area(ax, bx, ay, by, r, *, with_arc: bool = False):
     zero = jnp.zeros((), dtype)
     # Entry point u = (ux, uy): the top-left corner (ax, by) is inside iff ax^2 < r^2 - by^2.
     top = ax * ax < t_d
-    root_u = jnp.sqrt(jnp.maximum(jnp.where(top, t_d, t_a), zero))
+    root_u = _sqrt0(jnp.where(top, t_d, t_a))
     ux = jnp.where(top, jnp.minimum(root_u, bx), ax)
     uy = jnp.where(top, by, root_u)
     # Exit point v = (vx, vy): the bottom-right corner (bx, ay) is outside iff r^2 - ay^2 < bx^2.
     bottom = t_c < bx * bx
-    root_v = jnp.sqrt(jnp.maximum(jnp.where(bottom, t_c, t_b), zero))
+    root_v = _sqrt0(jnp.where(bottom, t_c, t_b))
     vx = jnp.where(bottom, jnp.maximum(root_v, ax), bx)
     vy = jnp.where(bottom, ay, root_v)
     width = jnp.maximum(vx - ux, zero)  # no width, no arc
@@ -109,7 +115,7 @@ def tap_area(ax, bx, ay, by, r, *, with_arc: bool = False):
     s2 = jnp.where(pos, (width * width + dh * dh) * (inv_r * inv_r / 4), zero)
     s2 = jnp.minimum(s2, 0.5)  # a quarter circle at most; guards rounding above it
     t2 = s2 / (2 * (1 + jnp.sqrt(1 - s2)))
-    t = jnp.sqrt(t2)
+    t = _sqrt0(t2)
     segment = (r * r) * (t2 * t) * _horner(t2, _segment_series(dtype))
     area = (by - ay) * (ux - ax) + width * ((uy - ay) + (vy - ay)) / 2 + segment
     if not with_arc:
@@ -185,40 +191,49 @@ def mirror_classes(offsets: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarra
     for y, x in sorted(present):
         if not 0 <= y <= x:
             continue
-        images = sorted({(sy * p, sx * q) for p, q in ((y, x), (x, y)) for sy in (1, -1) for sx in (1, -1)})
+        images = sorted(
+            {(sy * p, sx * q) for p, q in ((y, x), (x, y)) for sy in (1, -1) for sx in (1, -1)}
+        )
         if not present.issuperset(images):
             raise ValueError(f"offsets are not closed under the grid's reflections at {(y, x)}")
         canonical, mirrors = classes.setdefault(len(images), ([], []))
         canonical.append((y, x))
         mirrors.append(images)
-    return {k: (np.asarray(c, np.int32), np.asarray(m, np.int32)) for k, (c, m) in sorted(classes.items())}
+    return {
+        k: (np.asarray(c, np.int32), np.asarray(m, np.int32))
+        for k, (c, m) in sorted(classes.items())
+    }
 
 
 def symmetric_gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
     """The same sum as `gather`, for a weight with the disc's symmetry, one weight per mirror class.
 
     `out[p] = sum_o image[p - o] w(o, r[p - o])` with `w` invariant under the 8 reflections of the
-    grid: for each canonical offset the weighted source `image * w(o, radius)` is formed once on the
-    (padded) source grid and added at each of its mirrored offsets. A checkpointed `lax.scan` per
-    mirror class (1, 4 or 8 images) keeps memory at a few images, forward and reverse.
+    grid. For each canonical offset the weighted source `image * w(o, radius)` is formed once and
+    added into a padded output at each of its (1, 4 or 8) mirrored offsets, as a scatter: the
+    window `out[o : o + H, o : o + W]` is read, incremented and written back in place. Written this
+    way, reverse mode is cheap too: the transpose of that in-place update is a plain slice of the
+    cotangent (the transpose of the gather form, slicing a padded source, would write a mostly-zero
+    padded image per mirror). A checkpointed `lax.scan` per mirror class keeps memory at a few
+    images, forward and reverse.
     """
     h, w, c = image.shape
     pad = int(np.abs(offsets).max()) if offsets.size else 0
-    pimg = jnp.pad(image, ((pad, pad), (pad, pad), (0, 0)))
-    prad = jnp.pad(radius, ((pad, pad), (pad, pad)))
+    acc = jnp.zeros((h + 2 * pad, w + 2 * pad, c), image.dtype)
     zero = jnp.zeros((), jnp.int32)
-    out = jnp.zeros_like(image)
     for k, (canonical, mirrors) in mirror_classes(offsets).items():
         geometry = _offset_geometry(canonical, image.dtype)
-        starts = jnp.asarray(pad - mirrors, jnp.int32)
+        starts = jnp.asarray(pad + mirrors, jnp.int32)  # source (0, 0) lands at pad + o
 
         def body(acc, xs, k=k):
             start, geom = xs
-            weighted = pimg * weight_fn(*geom, prad)[..., None]
-            for j in range(k):  # the same weighted sources, shifted to each mirrored offset
-                acc = acc + lax.dynamic_slice(weighted, (start[j, 0], start[j, 1], zero), (h, w, c))
+            weighted = image * weight_fn(*geom, radius)[..., None]
+            for j in range(k):  # the same weighted sources, added at each mirrored offset
+                at = (start[j, 0], start[j, 1], zero)
+                window = lax.dynamic_slice(acc, at, (h, w, c))
+                acc = lax.dynamic_update_slice(acc, window + weighted, at)
             return acc, None
 
         body = jax.checkpoint(body, prevent_cse=False)
-        out, _ = lax.scan(body, out, (starts, geometry))
-    return out
+        acc, _ = lax.scan(body, acc, (starts, geometry))
+    return acc[pad : pad + h, pad : pad + w]
