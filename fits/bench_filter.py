@@ -1,0 +1,194 @@
+"""Benchmark: what does the exact soft filter cost next to a gather with constant weights?
+
+Question: how long do `coc_filter(method="soft")` and its gradient take per megapixel on a
+1024 x 1024 RGB image at max_radius 2, 4, 8 and 16 px, and how does that compare with the floor of
+any gather over the same window, the same taps with constant weights?
+
+Measured (float32, jit, `block_until_ready`, one warm-up call, median of `--repeats` calls):
+
+- `soft`: `jaxdof.coc_filter(image, radius, max_radius=R)`, radii uniform in `[0, R]`.
+- `const gather`: the plain per-tap gather loop (`jaxdof._filters.soft.gather`, one offset per
+  checkpointed scan step) with a constant weight per tap: the floor the soft filter is compared
+  with (issue 2's goal: soft <= 3x this).
+- `const mirrored`: the soft filter's own loop (`symmetric_gather`: one weight per mirror class,
+  scattered to the mirrored offsets) with constant weights: how much of `soft` is the loop and how
+  much the exact coverage.
+
+"forward" is the filter; "fwd+grad" is `value_and_grad` of `sum(out^2)` with respect to the image
+and the radius map (the const rows: the image). Compile time is reported apart. Writes
+`fits/results/bench_filter.md`.
+
+Run: `python fits/bench_filter.py` (about 2-4 minutes on a 2-core CPU).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import pathlib
+import platform
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxdof
+from jaxdof._filters.common import tap_offsets
+from jaxdof._filters.soft import gather, symmetric_gather
+
+
+RESULTS = pathlib.Path(__file__).parent / "results"
+
+
+def machine_info() -> dict[str, str]:
+    """CPU model, core count, load, library versions and the JAX device: the conditions of a run."""
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",) * 3
+    return {
+        "cpu": f"{cpu}, {os.cpu_count()} logical cores",
+        "device": ", ".join(str(d) for d in jax.devices()),
+        "load average (1, 5, 15 min) at start": ", ".join(f"{x:.1f}" for x in load),
+        "python": platform.python_version(),
+        "jax / jaxlib": f"{jax.__version__} / {jax.lib.__version__}",
+        "jaxdof": jaxdof.__version__,
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS", "(unset)"),
+    }
+
+
+def compile_all(fns: dict, *args) -> tuple[dict, dict]:
+    """Compile every `fn` in `fns` on `args`: `({name: compiled}, {name: compile seconds})`."""
+    compiled, seconds = {}, {}
+    for name, fn in fns.items():
+        t0 = time.perf_counter()
+        compiled[name] = jax.jit(fn).lower(*args).compile()
+        seconds[name] = time.perf_counter() - t0
+        jax.block_until_ready(compiled[name](*args))  # warm-up: first touch of the buffers
+    return compiled, seconds
+
+
+def interleaved_medians(compiled: dict, *args, repeats: int) -> dict[str, tuple[float, float]]:
+    """`{name: (median wall s, median CPU s)}`, timing the variants in turns, round after round.
+
+    Interleaving exposes every variant to the same drift in the machine's load, so ratios between
+    them stay meaningful on a shared machine. CPU time (`time.process_time`, all threads) is less
+    sensitive than wall time to other processes' load.
+    """
+    runs: dict[str, list[tuple[float, float]]] = {name: [] for name in compiled}
+    for _ in range(repeats):
+        for name, fn in compiled.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(*args))
+            runs[name].append((time.perf_counter() - w0, time.process_time() - c0))
+    return {
+        name: (statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs))
+        for name, rs in runs.items()
+    }
+
+
+def variants(max_radius: float):
+    """`{name: (forward(image, radius), fwd+grad(image, radius))}` for one window."""
+    offsets = tap_offsets(max_radius)
+    n = len(offsets)
+
+    def const_weight(ax, bx, ay, by, m, centre, r):
+        return jnp.full_like(r, 1.0 / n)
+
+    filters = {
+        "soft": lambda i, r: jaxdof.coc_filter(i, r, max_radius=max_radius),
+        "const gather": lambda i, r: gather(i, r, offsets, const_weight),
+        "const mirrored": lambda i, r: symmetric_gather(i, r, offsets, const_weight),
+    }
+    out = {}
+    for name, f in filters.items():
+        argnums = (0, 1) if name == "soft" else 0
+        loss = lambda i, r, f=f: jnp.sum(f(i, r) ** 2)
+        out[name] = (f, jax.value_and_grad(loss, argnums=argnums))
+    return out
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=1024, help="image side, pixels")
+    parser.add_argument("--radii", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", type=pathlib.Path, default=RESULTS / "bench_filter.md")
+    args = parser.parse_args(argv)
+
+    info = machine_info()
+    rng = np.random.default_rng(0)
+    h = w = args.size
+    mpix = h * w / 1e6
+    image = jnp.asarray(rng.uniform(size=(h, w, 3)), jnp.float32)
+    rows = []
+    for max_radius in args.radii:
+        radius = jnp.asarray(rng.uniform(0, max_radius, (h, w)), jnp.float32)
+        taps = len(tap_offsets(max_radius))
+        fns = {}
+        for name, (fwd, both) in variants(max_radius).items():
+            fns[(name, "fwd")], fns[(name, "grad")] = fwd, both
+        compiled, compile_s = compile_all(fns, image, radius)
+        t = interleaved_medians(compiled, image, radius, repeats=args.repeats)
+        for name in variants(max_radius):
+            (wf, cf), (wg, cg) = t[(name, "fwd")], t[(name, "grad")]
+            rows.append(
+                (max_radius, taps, name, wf / mpix, wg / mpix, cf / mpix, cg / mpix,
+                 compile_s[(name, "fwd")], compile_s[(name, "grad")])
+            )
+            print(
+                f"R={max_radius:<5g} taps={taps:<4d} {name:<15s} forward {wf / mpix:8.4f} s/MP "
+                f"fwd+grad {wg / mpix:8.4f} s/MP wall; CPU {cf / mpix:8.4f} / {cg / mpix:8.4f} "
+                f"s/MP (compile {compile_s[(name, 'fwd')]:.1f} s / {compile_s[(name, 'grad')]:.1f} s)",
+                flush=True,
+            )
+    info["load average (1, 5, 15 min) at end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+
+    by = {(r[0], r[2]): r for r in rows}
+    lines = [
+        "# Soft filter vs a constant-weight gather over the same window",
+        "",
+        f"Image {h} x {w} x 3, float32, radii uniform in [0, max_radius], jit. Variants are timed "
+        f"in turns, {args.repeats} rounds after a warm-up; medians, in seconds per megapixel; "
+        "compile time apart. Wall time and CPU time (all threads of this process) are both shown: "
+        "on a shared machine CPU time is the steadier of the two.",
+        "Produced by `python fits/bench_filter.py`"
+        + (f" `{' '.join(argv)}`" if argv else "")
+        + ". All rows come from one run.",
+        "",
+        "| max_radius | taps | method | forward wall | fwd+grad wall | forward CPU | fwd+grad CPU "
+        "| fwd+grad / forward (CPU) | soft / const gather, forward (CPU) | compile fwd / fwd+grad (s) |",
+        "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r, taps, name, wf, wg, cf, cg, kf, kg in rows:
+        ratio = f"{cf / by[(r, 'const gather')][5]:.2f}" if name == "soft" else ""
+        lines.append(
+            f"| {r:g} | {taps} | {name} | {wf:.4f} | {wg:.4f} | {cf:.4f} | {cg:.4f} | "
+            f"{cg / cf:.2f} | {ratio} | {kf:.1f} / {kg:.1f} |"
+        )
+    lines += [
+        "",
+        "- `soft`: `jaxdof.coc_filter` (exact analytic coverage); fwd+grad with respect to image and radius.",
+        "- `const gather`: the plain one-tap-per-step gather with constant weights (the floor of "
+        "issue 2's goal, soft <= 3x); fwd+grad with respect to the image.",
+        "- `const mirrored`: the soft filter's own mirrored loop with constant weights.",
+        "",
+        "## Machine",
+        "",
+        *[f"- {k}: {v}" for k, v in info.items()],
+        "",
+    ]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text("\n".join(lines))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
