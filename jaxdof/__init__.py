@@ -1,5 +1,10 @@
 import importlib.metadata
 
+from ._batch import (
+    batch_mesh as batch_mesh,
+    render_batch as render_batch,
+    shard_batch as shard_batch,
+)
 from ._filters import coc_filter as coc_filter
 from ._fit import FitResult as FitResult, fit_lens as fit_lens, solve_lens as solve_lens
 from ._lens import (

@@ -1,0 +1,122 @@
+"""Many scenes at once, sharded over devices along the batch axis (`jax.sharding`).
+
+The batch axis is the one that parallelises without communication: every scene is rendered
+independently. `render_batch` places the batch on a 1-D device `Mesh` with a
+`NamedSharding(mesh, PartitionSpec("batch"))` and runs one `jit(vmap(render))`; XLA's SPMD
+partitioner then keeps each device on its own slice. The same code runs on one CPU, on several GPUs,
+or on several hosts after `jax.distributed.initialize()` (`jax.devices()` then lists every host's
+devices). To try several devices on one CPU, set `XLA_FLAGS=--xla_force_host_platform_device_count=4`
+before JAX starts.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._filters.common import is_concrete
+from ._lens import ThinLens, coc_radius
+from ._render import render
+
+
+BATCH_AXIS = "batch"
+
+
+def batch_mesh(devices: Any = None) -> Mesh:
+    """A 1-D `Mesh` over `devices` (default: all of `jax.devices()`), its axis named `"batch"`."""
+    devices = jax.devices() if devices is None else list(devices)
+    if not devices:
+        raise ValueError("batch_mesh needs at least one device")
+    return Mesh(np.asarray(devices), (BATCH_AXIS,))
+
+
+def shard_batch(tree: Any, mesh: Mesh) -> Any:
+    """Place every array leaf of `tree` on `mesh`, split along its leading (batch) axis.
+
+    The leading axis must be a multiple of the number of devices (`render_batch` pads to one).
+    """
+    n = mesh.devices.size
+
+    def put(x):
+        x = jnp.asarray(x)
+        if x.ndim == 0 or x.shape[0] % n:
+            raise ValueError(
+                f"shard_batch: a leaf of shape {x.shape} has no leading batch axis divisible by the "
+                f"{n} devices of the mesh; pad the batch to a multiple of {n}"
+            )
+        return jax.device_put(x, NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
+
+    return jax.tree_util.tree_map(put, tree)
+
+
+def render_batch(
+    images,
+    depths,
+    lens: ThinLens,
+    *,
+    method: str = "soft",
+    max_radius: float | None = None,
+    normalize: bool = False,
+    mesh: Mesh | None = None,
+):
+    """Render a batch of scenes, sharded over the devices of `mesh` along the batch axis.
+
+    **Arguments:**
+
+    - `images`: `(B, H, W)` or `(B, H, W, C)` all-in-focus linear-light images.
+    - `depths`: `(B, H, W)` z-depths (m).
+    - `lens`: one `ThinLens` for every scene (scalar fields), or one per scene (fields of shape
+      `(B,)`).
+    - `method`, `normalize`: as in `jaxdof.render`.
+    - `max_radius`: window size in pixels, shared by the batch. `None` takes the largest circle of
+      confusion over the batch (needs concrete inputs).
+    - `mesh`: a 1-D mesh from `batch_mesh` (default: all devices).
+
+    **Returns:** `(B, ...)` rendered images, like `jax.vmap(render)` would give, sharded along the
+    batch axis. The batch is padded (by repeating the last scene) to a multiple of the number of
+    devices and the padding is dropped from the result.
+    """
+    images, depths = jnp.asarray(images), jnp.asarray(depths)
+    if images.ndim not in (3, 4) or depths.ndim != 3 or depths.shape != images.shape[:3]:
+        raise ValueError(
+            "render_batch: images must be (B, H, W) or (B, H, W, C) and depths (B, H, W) with the "
+            f"same B, H, W; got images {images.shape} and depths {depths.shape}"
+        )
+    b = images.shape[0]
+    leaves = jax.tree_util.tree_leaves(lens)
+    per_scene = any(jnp.ndim(x) > 0 for x in leaves)
+    if per_scene and any(jnp.shape(x) != (b,) for x in leaves):
+        raise ValueError(
+            f"render_batch: every lens field must be a scalar (one lens for all scenes) or have "
+            f"shape ({b},) (one per scene); got {[jnp.shape(x) for x in leaves]}"
+        )
+    if max_radius is None:
+        if not is_concrete(depths, lens):
+            raise ValueError("render_batch: under jit pass max_radius=<float> (pixels), a static number")
+        lens_b = lens if per_scene else jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,)), lens)
+        radii = jax.vmap(coc_radius)(depths, lens_b)
+        max_radius = float(jnp.max(radii)) if radii.size else 0.0
+    mesh = batch_mesh() if mesh is None else mesh
+    n = mesh.devices.size
+    padded = -(-b // n) * n
+
+    def pad(x):  # repeat the last scene: valid inputs, dropped afterwards
+        return jnp.concatenate([x, jnp.repeat(x[-1:], padded - b, axis=0)]) if padded > b else x
+
+    images, depths = pad(images), pad(depths)
+    images, depths = shard_batch((images, depths), mesh)
+    lens_axes = 0 if per_scene else None
+    if per_scene:
+        lens = shard_batch(jax.tree_util.tree_map(pad, lens), mesh)
+
+    def one(image, depth, lens_i):
+        return render(image, depth, lens_i, method=method, max_radius=max_radius, normalize=normalize)
+
+    out_sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
+    fn = jax.jit(jax.vmap(one, in_axes=(0, 0, lens_axes)), out_shardings=out_sharding)
+    out = fn(images, depths, lens)
+    return out[:b] if padded > b else out
