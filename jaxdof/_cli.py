@@ -57,6 +57,16 @@ def parse_length(text: str) -> float:
     return value
 
 
+def parse_focal_length(text: str) -> float:
+    """As `parse_length`, but a bare number of 1 or more (`50`) is refused: it is surely mm."""
+    value = parse_length(text)
+    if _LENGTH.match(text).group(2) is None and value >= 1:
+        raise argparse.ArgumentTypeError(
+            f"bare number {text!r} would be {value:g} metres; give a unit, e.g. {text.strip()}mm"
+        )
+    return value
+
+
 def parse_positive(text: str) -> float:
     try:
         value = float(text)
@@ -89,7 +99,7 @@ def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
     )
     g.add_argument(
         "--focal-length",
-        type=parse_length,
+        type=parse_focal_length,
         required=True,
         metavar="LEN",
         help=f"{what}focal length, e.g. 50mm",
@@ -317,10 +327,6 @@ def _read_inputs(args) -> tuple:
 
 def _check_lens(f: float, n: float | None, d_f: float | None, depth: np.ndarray, depth_path: str):
     """Physical sense of the options before any JAX work; errors name the option."""
-    if f >= 1.0:
-        raise InputError(
-            f"--focal-length {f:g} m is not a camera lens; give a unit (e.g. --focal-length 50mm)"
-        )
     if d_f is not None and d_f <= f:
         raise InputError(
             f"--focus {d_f:g} m must exceed --focal-length {_mm(f)} (a lens cannot focus closer "
@@ -398,14 +404,17 @@ def run_render(args) -> int:
         image_width=img.array.shape[1],
     )
     t0 = time.perf_counter()
-    out = jaxdof.render(
-        img.array,
-        depth,
-        lens,
-        method=args.method,
-        max_radius=args.max_radius,
-        normalize=args.normalize,
-    )
+    try:
+        out = jaxdof.render(
+            img.array,
+            depth,
+            lens,
+            method=args.method,
+            max_radius=args.max_radius,
+            normalize=args.normalize,
+        )
+    except ValueError as err:  # the library's own input checks (house style: ValueError)
+        raise InputError(" ".join(str(err).split())) from None
     out = np.asarray(out)
     radius = float(np.max(np.asarray(jaxdof.coc_radius(depth, lens))))
     write_image(args.out, out, bits=img.bits, linear=args.linear, inputs=inputs)
@@ -530,7 +539,7 @@ def run_fit(args) -> int:
             verbose=_progress(args.quiet),
         )
     except ValueError as err:  # e.g. a free set one photo cannot determine
-        raise InputError(str(err).replace("\n", " ")) from None
+        raise InputError(" ".join(str(err).split())) from None
     n = len(targets)
     lenses = [_lens_dict(result.lenses, i) for i in range(n)]
     errors = [_stderr_dict(result.stderr, i if n > 1 else None) for i in range(n)]

@@ -256,7 +256,7 @@ BAD = [  # (argv, text the one line must contain)
     ([*R, *LENS[:4], "--focus", "3km"], "argument --focus: bad length '3km'"),
     ([*R, *LENS[:4], "--focus=-3m"], "argument --focus: bad length '-3m'"),
     ([*R, *LENS[:4], "--focus", "5cm"], "--focus 0.05 m must exceed --focal-length 85mm"),
-    ([*R, "--focal-length", "85", *LENS[2:]], "--focal-length 85 m is not a camera lens"),
+    ([*R, "--focal-length", "85", *LENS[2:]], "argument --focal-length: bare number '85'"),
     ([*R, *LENS[:2], "--f-number", "0", *LENS[4:]], "argument --f-number: '0' must be positive"),
     ([*R, *LENS[:2], "--f-number", "nan", *LENS[4:]], "argument --f-number"),
     ([*R, *LENS[:4]], "the following arguments are required: --focus"),
