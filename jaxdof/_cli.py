@@ -95,7 +95,7 @@ def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
     what = "starting " if start else ""
     g = p.add_argument_group(
         "lens" + (" (the starting point of the fit)" if start else ""),
-        "Lengths take a unit: mm, cm or m (a bare number is metres).",
+        "Lengths take a unit: mm, cm or m (a bare number is metres; --focal-length 50 is refused).",
     )
     g.add_argument(
         "--focal-length",
@@ -133,8 +133,10 @@ def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
 def _add_file_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group(
         "files",
-        "Integer images (8/16-bit) are sRGB and decoded to linear light; float files (TIFF, .npy, "
-        ".npz, EXR) are linear. Depth is z-depth in metres.",
+        "Integer images (8/16-bit PNG, TIFF, JPEG) are sRGB: decoded to linear light, encoded\n"
+        "back on output. Float files (float TIFF, .npy, .npz) are linear. EXR is not readable\n"
+        "here (no imageio backend for it): convert to float32 TIFF or .npy.\n"
+        "Depth is z-depth along the optical axis, in metres.",
     )
     g.add_argument(
         "--linear", action="store_true", help="take integer image files as linear light too"
