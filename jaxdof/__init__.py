@@ -5,6 +5,12 @@ from ._batch import (
     render_batch as render_batch,
     shard_batch as shard_batch,
 )
+from ._corrections import (
+    depth_edges as depth_edges,
+    edge_weight as edge_weight,
+    footprint_radius as footprint_radius,
+    pixel_prefilter as pixel_prefilter,
+)
 from ._filters import coc_filter as coc_filter
 from ._fit import FitResult as FitResult, fit_lens as fit_lens, solve_lens as solve_lens
 from ._lens import (
@@ -14,6 +20,10 @@ from ._lens import (
     signed_coc_radius as signed_coc_radius,
 )
 from ._overlap import circle_pixel_overlap as circle_pixel_overlap
+from ._raytrace import (
+    lens_from_raytracer as lens_from_raytracer,
+    ray_distance_to_z as ray_distance_to_z,
+)
 from ._render import render as render
 
 
