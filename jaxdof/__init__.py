@@ -9,7 +9,6 @@ from ._corrections import (
     depth_edges as depth_edges,
     edge_weight as edge_weight,
     footprint_radius as footprint_radius,
-    pixel_prefilter as pixel_prefilter,
 )
 from ._filters import coc_filter as coc_filter
 from ._fit import FitResult as FitResult, fit_lens as fit_lens, solve_lens as solve_lens

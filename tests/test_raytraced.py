@@ -13,14 +13,14 @@ import numpy as np
 import pytest
 
 import jaxdof
-from jaxdof._corrections import (
+from jaxdof import (
     depth_edges,
-    edge_distance,
     edge_weight,
     footprint_radius,
-    pixel_prefilter,
+    lens_from_raytracer,
+    ray_distance_to_z,
 )
-from jaxdof._raytrace import lens_from_raytracer, ray_distance_to_z
+from jaxdof._corrections import edge_distance, pixel_prefilter
 
 
 DATA = Path(__file__).parent / "data"
