@@ -23,6 +23,7 @@ Run: `python fits/bench_speed.py` (defaults below; `--quick` for a smoke run).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import pathlib
@@ -112,7 +113,12 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="tiny smoke run")
     parser.add_argument("--out", type=pathlib.Path, default=RESULTS / "speed.md")
+    parser.add_argument("--replot", action="store_true", help="redraw the plot from the saved JSON")
     args = parser.parse_args(argv)
+    if args.replot:
+        saved = json.loads(args.out.with_suffix(".json").read_text())
+        plot(saved["by_size"], saved["by_radius"], saved["info"], args.out.with_suffix(".png"))
+        return
     if args.quick:
         args.sizes, args.radii, args.radius_size, args.repeats = [64, 128], [2, 4], 64, 1
 
@@ -185,34 +191,43 @@ def main(argv=None) -> None:
     args.out.write_text("\n".join(lines))
     print(f"wrote {args.out}")
 
+    args.out.with_suffix(".json").write_text(
+        json.dumps({"by_size": by_size, "by_radius": by_radius, "memory": mem, "info": info}, indent=1)
+    )
+    plot(by_size, by_radius, info, args.out.with_suffix(".png"))
+
+
+def plot(by_size: list, by_radius: list, info: dict, png: pathlib.Path) -> None:
     try:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
+        from matplotlib.ticker import NullFormatter, ScalarFormatter
     except ImportError:
         print("matplotlib not installed: no plot")
         return
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     for ax, rows, key, label in (
-        (axes[0], by_size, "size", f"image side (px), max_radius {args.size_radius:g}"),
-        (axes[1], by_radius, "R", f"max radius (px), {args.radius_size}^2 image"),
+        (axes[0], by_size, "size", f"image side (px), max_radius {by_size[0]['R']:g}"),
+        (axes[1], by_radius, "R", f"max radius (px), {by_radius[0]['size']}^2 image"),
     ):
         x = [r[key] for r in rows]
         for name, style in (("cpu_fwd", "o-"), ("cpu_grad", "s--")):
             ax.loglog(x, [r[name] for r in rows], style, label=name.replace("cpu_", "CPU "))
         ax.set_xlabel(label)
-        ax.set_ylabel("seconds per megapixel")
+        ax.set_ylabel("CPU seconds per megapixel")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend()
     if len(by_radius) >= 2:  # guide: the area law R^2 through the first point
         x = np.array([r["R"] for r in by_radius], float)
-        y0 = by_radius[0]["cpu_fwd"]
-        axes[1].loglog(x, y0 * (x / x[0]) ** 2, ":", color="grey", label="~R^2")
-        axes[1].legend()
-    fig.suptitle("jaxdof soft filter, CPU (" + info["cpu"] + ")")
+        axes[1].loglog(x, by_radius[0]["cpu_fwd"] * (x / x[0]) ** 2, ":", color="grey", label="~R^2")
+    for ax, rows, key in ((axes[0], by_size, "size"), (axes[1], by_radius, "R")):
+        ax.set_xticks([r[key] for r in rows])  # after every loglog call, which resets the ticks
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.legend()
+    fig.suptitle("jaxdof soft filter on CPU (" + info["cpu"] + "); no GPU in this run")
     fig.tight_layout()
-    png = args.out.with_suffix(".png")
     fig.savefig(png, dpi=110)
     print(f"wrote {png}")
 
