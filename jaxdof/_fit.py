@@ -36,6 +36,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS
 from ._filters.common import is_concrete
 from ._lens import ThinLens
 from ._render import render
@@ -111,6 +112,7 @@ class _Model(eqx.Module):
     n_targets: int = eqx.field(static=True)
     max_radius: float = eqx.field(static=True)
     exposure: bool = eqx.field(static=True)
+    method: str = eqx.field(static=True, default="soft")
 
     def natural(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, "t 4"]:
         """Lens fields `(f, N, d_f, pitch)` of every target."""
@@ -156,7 +158,9 @@ class _Model(eqx.Module):
         gain, offset = self.exposure_params(y)
 
         def one(lens, g, o):
-            return g * render(image, depth, lens, max_radius=self.max_radius) + o
+            return (
+                g * render(image, depth, lens, method=self.method, max_radius=self.max_radius) + o
+            )
 
         return jax.vmap(one)(lenses, gain, offset)
 
@@ -310,11 +314,11 @@ def _rank_tol(dtype) -> float:
     return 3e-6 if jnp.dtype(dtype) == jnp.float32 else 1.5e-8
 
 
-def _statistics(residual, jac, g, n, used: tuple[int, ...]) -> dict[str, Array]:
+def _statistics(residual, jac, g, theta, n, used: tuple[int, ...]) -> dict[str, Array]:
     """Loss, residual sigma, covariance in natural units, conditioning: from the full Jacobian.
 
-    `jac` `(n_res, P)` is d residual / d y, `g` `(P, P)` is d theta / d y; `used` are the slots
-    that are free. Works on tracers (`solve_lens` under vmap) and on concrete arrays.
+    `jac` `(n_res, P)` is d residual / d y, `g` `(P, P)` is d theta / d y, `theta` `(P,)` the
+    slots' values in their own units; `used` are the slots that are free. Works on tracers (`solve_lens` under vmap) and on concrete arrays.
     """
     idx = jnp.asarray(used)
     jac = jac[:, idx]
@@ -326,14 +330,18 @@ def _statistics(residual, jac, g, n, used: tuple[int, ...]) -> dict[str, Array]:
     scale = jnp.sqrt(jnp.sum(jac * jac, axis=0))
     safe = jnp.where(scale > 0, scale, 1)
     # Column scaling makes the rank test independent of the units of each coordinate.
-    _, s, vt = jnp.linalg.svd(jac / safe, full_matrices=False)
+    _, s, vt = jnp.linalg.svd(jac / safe[None, :], full_matrices=False)
     good = s > _rank_tol(dtype) * s[0]
     inv_s2 = jnp.where(good, 1 / jnp.where(good, s * s, 1), 0)
-    cov_y = sigma2 * ((vt.T * inv_s2) @ vt) / safe[:, None] / safe[None, :]
+    cov_y = sigma2 * ((vt.T * inv_s2[None, :]) @ vt) / safe[:, None] / safe[None, :]
     cov = g @ cov_y @ g.T  # chain rule: y (log / logit coordinates) -> each field's own units
-    # A parameter with a component along a null direction (or with a zero column) is undetermined.
-    null = jnp.where(good[:, None], 0, jnp.abs(vt))
-    undetermined = (jnp.max(null, axis=0) > 1e-3) | (scale == 0)
+    # A parameter that moves along a null direction (or has a zero column) is undetermined. The
+    # test is in each field's own units: with f and N free from one photo, the null direction moves
+    # log(d_f - f) too, yet d_f itself stays put and keeps its (estimable) standard error.
+    v_null = jnp.where(good[:, None], 0, vt).T / safe[:, None]  # (p, k) null vectors in y
+    moved = jnp.abs(g @ v_null) / jnp.maximum(jnp.abs(theta[idx]), jnp.finfo(dtype).tiny)[:, None]
+    moved = jnp.max(moved, axis=1)
+    undetermined = (moved > 1e-3 * jnp.max(moved)) & ~jnp.all(good) | (scale == 0)
     var = jnp.where(undetermined, jnp.inf, jnp.diag(cov))
     smin = s[-1]
     condition = jnp.where(smin > 0, s[0] / jnp.where(smin > 0, smin, 1), jnp.inf)
@@ -349,21 +357,27 @@ def _statistics(residual, jac, g, n, used: tuple[int, ...]) -> dict[str, Array]:
 
 
 def _solve(model: _Model, solver, y0, args, max_steps: int):
-    """One least-squares solve from `y0`; returns what the statistics need. Pure."""
+    """One least-squares solve from `y0`: solution, status, steps, residual and slot values. Pure."""
     sol = optx.least_squares(model, solver, y0, args, max_steps=max_steps, throw=False)
     y = sol.value
     residual = model(y, args)
-    jac = jax.jacfwd(model)(y, args)  # (n, P): P forward passes, cheap for few parameters
-    g = jax.jacfwd(model.theta)(y, args[-1])
     ok = sol.result == optx.RESULTS.successful
     maxed = sol.result == optx.RESULTS.nonlinear_max_steps_reached
     status = jnp.where(ok, CONVERGED, jnp.where(maxed, MAX_STEPS, SOLVER_FAILED))
-    finite = jnp.all(jnp.isfinite(residual)) & jnp.all(jnp.isfinite(jac))
-    status = jnp.where(ok & ~finite, SOLVER_FAILED, status)
-    return y, status, sol.stats["num_steps"], residual, jac, g, model.theta(y, args[-1])
+    status = jnp.where(ok & ~jnp.all(jnp.isfinite(residual)), SOLVER_FAILED, status)
+    return y, status, sol.stats["num_steps"], residual, model.theta(y, args[-1])
 
 
+def _jacobians(model: _Model, y, args):
+    """d residual / d y `(n, P)` by forward mode (P passes; few parameters, many residuals) and
+    d theta / d y `(P, P)`."""
+    return jax.jacfwd(model)(y, args), jax.jacfwd(model.theta)(y, args[-1])
+
+
+# All starts as one vmapped solve; the Jacobian only at the chosen start, compiled apart so that
+# it is shared by every solver, number of starts and verbosity.
 _solve_starts = eqx.filter_jit(eqx.filter_vmap(_solve, in_axes=(None, None, 0, None, None)))
+_jacobians_jit = eqx.filter_jit(_jacobians)
 
 
 def _n_residuals(targets, sqrt_w):
@@ -406,6 +420,15 @@ def _assemble(spec: _Spec, model: _Model, y, status, num_steps, stats, layout, s
 # --------------------------------------------------------------------------------------------
 # Input handling.
 # --------------------------------------------------------------------------------------------
+
+
+def _check_method(method: str) -> None:
+    if not DIFFERENTIABLE_IN_RADIUS.get(method, False):
+        usable = tuple(m for m, ok in DIFFERENTIABLE_IN_RADIUS.items() if ok)
+        raise ValueError(
+            f"{method=} cannot drive a fit: its output has no useful derivative with respect to the "
+            f"circle radii (or it is unknown); use one of {usable}"
+        )
 
 
 def _check_names(free, shared) -> tuple[tuple[str, ...], tuple[str, ...]]:
@@ -508,8 +531,10 @@ def _prepare(image, depth, targets, init, weight):
             )
     base = base.astype(dtype)
 
+    # The weight is always materialised at the targets' shape, so that weighted and unweighted
+    # fits share one compiled solve.
     if weight is None:
-        sqrt_w = jnp.ones((1,) * targets.ndim, dtype)
+        sqrt_w = jnp.ones(targets.shape, dtype)
     else:
         weight = jnp.asarray(weight)
         shape_ok = weight.shape in (
@@ -529,11 +554,14 @@ def _prepare(image, depth, targets, init, weight):
                 raise ValueError("weight must be finite and >= 0 (0 masks a pixel out)")
             if not np.any(w > 0):
                 raise ValueError("weight is zero everywhere: nothing left to fit")
-        if weight.ndim == 2:
+        colour = targets.ndim == 4
+        if weight.shape == image.shape[:2]:
+            weight = weight[None, ..., None] if colour else weight[None]
+        elif weight.shape == (n_t, *image.shape[:2]):
+            weight = weight[..., None] if colour else weight
+        elif weight.shape == image.shape:
             weight = weight[None]
-        if weight.ndim < targets.ndim:  # (T, H, W) against colour targets
-            weight = weight[..., None]
-        sqrt_w = jnp.sqrt(weight.astype(dtype))
+        sqrt_w = jnp.broadcast_to(jnp.sqrt(weight.astype(dtype)), targets.shape)
     return image.astype(dtype), depth.astype(dtype), targets.astype(dtype), sqrt_w, base, single
 
 
@@ -651,6 +679,7 @@ def solve_lens(
     max_steps: int = 100,
     weight: ArrayLike | None = None,
     exposure: bool = False,
+    method: str = "soft",
 ) -> FitResult:
     """The pure core of `fit_lens`: one solve from `init`, with no checks that need values.
 
@@ -662,18 +691,21 @@ def solve_lens(
     `max_radius` are clamped and not detected here; `message` is empty.
     """
     free, shared = _check_names(free, shared)
+    _check_method(method)
     image, depth, targets, sqrt_w, base, single = _prepare(image, depth, targets, init, weight)
     spec = _Spec(free, shared, targets.shape[0], bool(exposure))
     t = targets.shape[0]
     layout = spec.layout(base, depth)
-    model = _Model(t, float(max_radius), bool(exposure))
+    model = _Model(t, float(max_radius), bool(exposure), method)
     if solver is None:
         tol = _default_tol(image.dtype)
         solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
     args = (image, depth, targets, sqrt_w, layout)
     y0 = model.pack(base, layout)
-    y, status, num_steps, residual, jac, g, _ = _solve(model, solver, y0, args, int(max_steps))
-    stats = _statistics(residual, jac, g, _n_residuals(targets, sqrt_w), spec.used)
+    y, status, num_steps, residual, theta = _solve(model, solver, y0, args, int(max_steps))
+    jac, g = _jacobians(model, y, args)
+    status = jnp.where((status == CONVERGED) & ~jnp.all(jnp.isfinite(jac)), SOLVER_FAILED, status)
+    stats = _statistics(residual, jac, g, theta, _n_residuals(targets, sqrt_w), spec.used)
     return _assemble(spec, model, y, status, num_steps, stats, layout, single)
 
 
@@ -693,6 +725,7 @@ def fit_lens(
     exposure: bool = False,
     starts: int | None = None,
     verbose: bool | Callable[..., None] = False,
+    method: str = "soft",
 ) -> FitResult:
     r"""Recover lens parameters from defocused photos of a scene with known image and depth.
 
@@ -731,6 +764,8 @@ def fit_lens(
     - `verbose`: `True` prints step, loss and the current lens of every start while solving; a
       callable is passed to the optimistix solver as its `verbose` (it receives `(name, value)`
       pairs, with `y` in the solver's coordinates).
+    - `method`: the `jaxdof.render` method of the forward model (default `"soft"`, the exact
+      coverage); it must be differentiable with respect to the radius.
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `message`, when the best
     start did not converge, when distinct lenses fit equally well, when the circles outgrow a given
@@ -749,6 +784,7 @@ def fit_lens(
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
     free, shared = _check_names(free, shared)
+    _check_method(method)
     image, depth, targets, sqrt_w, base, single = _prepare(image, depth, targets, init, weight)
     if not is_concrete(image, depth, targets, base, sqrt_w):
         raise ValueError(
@@ -779,7 +815,7 @@ def fit_lens(
 
     dtype = image.dtype
     spec = _Spec(free, shared, n_t, bool(exposure))
-    layout = spec.layout(base, d)
+    layout = spec.layout(base, depth)
     fcap = np.asarray(layout.fcap, np.float64)
     if np.any(b[:, 0] >= fcap):
         raise ValueError(
@@ -808,14 +844,14 @@ def fit_lens(
     notes = []
     y0s = None
     for _ in range(3):
-        model = _Model(n_t, window, bool(exposure))
+        model = _Model(n_t, window, bool(exposure), method)
         fit_solver = solver
         if verbose is not False:
             fn = verbose if callable(verbose) else _verbose_printer(model, layout)
             fit_solver = eqx.tree_at(lambda s: s.verbose, solver, fn)
         if y0s is None:
             y0s = jnp.stack([model.pack(jnp.asarray(s, dtype), layout) for s in start_params])
-        ys, status, num_steps, residual, jac, g, theta = _solve_starts(
+        ys, status, num_steps, residual, theta = _solve_starts(
             model, fit_solver, y0s, args, int(max_steps)
         )
         loss = 0.5 * np.sum(np.asarray(residual, np.float64) ** 2, axis=-1)
@@ -832,8 +868,12 @@ def fit_lens(
         window = _window(r_final, max(cap, 1.5 * r_final + 1.0))
         y0s = jnp.concatenate([ys[best][None], ys], axis=0)
 
-    stats = _statistics(residual[best], jac[best], g[best], n_res, spec.used)
-    result = _assemble(spec, model, ys[best], status[best], num_steps[best], stats, layout, single)
+    jac, g = _jacobians_jit(model, ys[best], args)
+    stats = _statistics(residual[best], jac, g, theta[best], n_res, spec.used)
+    status_best = status[best]
+    if not np.all(np.isfinite(np.asarray(jac))):
+        status_best = jnp.asarray(SOLVER_FAILED)
+    result = _assemble(spec, model, ys[best], status_best, num_steps[best], stats, layout, single)
     code = int(result.status)
 
     # The near/far ambiguity: another converged start at a distinct lens, with a loss the noise

@@ -1,0 +1,358 @@
+"""fit_lens: recovery, identifiability, robustness, statistics, batching.
+
+Every fit here compiles a solve (tens of seconds on a loaded CPU), so the tests share a handful of
+compiled configurations: one 32x32 scene, `max_radius=WINDOW` and `starts=2` wherever the point of
+the test allows, so that most fits reuse the first compilation.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdof
+from jaxdof import ThinLens, fit_lens, render, solve_lens
+
+
+H = W = 32
+PITCH = 8e-5  # m: large pixels, so that a 50 mm f/2 lens gives circles of a few pixels here
+TRUE = dict(focal_length=0.05, f_number=2.0, focus_distance=1.6)  # K = 5.04 px
+WINDOW = 6.0  # px: the truth's largest circle is 3.0 px; headroom for iterates
+STARTS = 2
+
+# Every identifiable free set from one photo (f and N together are not, see below).
+IDENTIFIABLE = [
+    ("focus_distance",),
+    ("f_number",),
+    ("focal_length",),
+    ("f_number", "focus_distance"),
+    ("focal_length", "focus_distance"),
+]
+
+
+def scene(dtype=np.float64, seed=0):
+    """A random texture on a slanted plane 1..3 m, with a step to 1.2 m in one quadrant."""
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(size=(H, W))
+    yy, xx = np.mgrid[0:H, 0:W]
+    depth = 1.0 + 2.0 * xx / (W - 1)
+    depth = np.where((yy < H // 3) & (xx > W // 2), 1.2, depth)
+    return image.astype(dtype), depth.astype(dtype)
+
+
+def lens(dtype=np.float64, **kw):
+    v = {**TRUE, **kw}
+    return ThinLens(
+        *(np.asarray(v[n], dtype) for n in ("focal_length", "f_number", "focus_distance")),
+        np.asarray(PITCH, dtype),
+    )
+
+
+def wrong_init(free, dtype=np.float64):
+    """Start off by a factor of 2 in K (through N, or f) and by 30% in the focus distance."""
+    kw = {}
+    if "f_number" in free:
+        kw["f_number"] = TRUE["f_number"] * 2  # K / 2
+    elif "focal_length" in free:
+        kw["focal_length"] = TRUE["focal_length"] / np.sqrt(2)  # K / 2 (f << d_f)
+    if "focus_distance" in free:
+        kw["focus_distance"] = TRUE["focus_distance"] * 1.3
+    return lens(dtype, **kw)
+
+
+def rel_err(fit, true, fields):
+    return {n: abs(float(getattr(fit, n)) / float(getattr(true, n)) - 1) for n in fields}
+
+
+@pytest.mark.parametrize("free", IDENTIFIABLE)
+def test_noise_free_recovery_float64(free):
+    image, depth = scene()
+    true = lens()
+    target = render(image, depth, true)
+    res = fit_lens(
+        image, depth, target, wrong_init(free), free=free, max_radius=WINDOW, starts=STARTS
+    )
+    assert bool(res.success), res.message
+    err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
+    assert max(err.values()) < 1e-4, err  # the issue's float64 target
+    assert set(res.stderr) == set(free)
+    assert res.covariance.shape == (len(free), len(free))
+
+
+def test_noise_free_recovery_float32(float32):
+    image, depth = scene(np.float32)
+    true = lens(np.float32)
+    target = render(image, depth, true)
+    assert target.dtype == jnp.float32
+    for free in IDENTIFIABLE:
+        init = wrong_init(free, np.float32)
+        res = fit_lens(image, depth, target, init, free=free, max_radius=WINDOW, starts=STARTS)
+        assert bool(res.success), (free, res.message)
+        assert res.lens.f_number.dtype == jnp.float32
+        err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
+        assert max(err.values()) < 1e-3, (free, err)  # the issue's float32 target
+    # The rank test also holds at float32's rounding level (same compiled solve).
+    with pytest.raises(ValueError, match="not determined by the data"):
+        fit_lens(
+            image,
+            depth,
+            target,
+            lens(np.float32, f_number=3.0),
+            free=("focal_length", "f_number"),
+            max_radius=WINDOW,
+            starts=STARTS,
+        )
+
+
+@pytest.mark.parametrize(
+    "free", [("focal_length", "f_number"), ("focal_length", "f_number", "focus_distance")]
+)
+def test_degenerate_free_set_refused(free):
+    image, depth = scene()
+    target = render(image, depth, lens())
+    init = lens(f_number=3.0, focus_distance=1.8 if "focus_distance" in free else 1.6)
+    with pytest.raises(ValueError, match=r"K = f\^2 / \(2 N \(d_f - f\)\).*focus bracket"):
+        fit_lens(image, depth, target, init, free=free, max_radius=WINDOW, starts=STARTS)
+    res = fit_lens(
+        image,
+        depth,
+        target,
+        init,
+        free=free,
+        max_radius=WINDOW,
+        starts=STARTS,
+        allow_degenerate=True,
+    )
+    assert not bool(res.success)
+    assert "not determined" in res.message
+    # f and N move together along the null direction: no standard error for them ...
+    assert np.isinf(float(res.stderr["focal_length"])) and np.isinf(float(res.stderr["f_number"]))
+    # ... but K and d_f are determined, so the fit still reproduces the photo and the focus.
+    np.testing.assert_allclose(float(res.lens.blur_scale), float(lens().blur_scale), rtol=1e-4)
+    if "focus_distance" in free:
+        assert np.isfinite(float(res.stderr["focus_distance"]))
+        np.testing.assert_allclose(
+            float(res.lens.focus_distance), TRUE["focus_distance"], rtol=1e-4
+        )
+
+
+def test_dead_zone_detected():
+    """Circles all under half a pixel: the render ignores the lens, and fit_lens says so."""
+    image, depth = scene()
+    tiny = lens(f_number=64.0, focus_distance=1.9)  # K = 0.16 px
+    target = render(image, depth, tiny)
+    with pytest.raises(ValueError, match="half a pixel"):
+        fit_lens(image, depth, target, tiny, max_radius=WINDOW, starts=STARTS)
+    res = fit_lens(
+        image, depth, target, tiny, max_radius=WINDOW, starts=STARTS, allow_degenerate=True
+    )
+    assert not bool(res.success) and "half a pixel" in res.message
+
+
+def test_near_far_ambiguity_is_reported():
+    """One fronto-parallel plane: a focus distance in front of it and one behind blur it alike."""
+    image, _ = scene()
+    depth = np.full((H, W), 2.0)
+    true = lens(focus_distance=1.5)
+    target = render(image, depth, true)
+    res = fit_lens(
+        image,
+        depth,
+        target,
+        lens(focus_distance=1.3),
+        free=("focus_distance",),
+        max_radius=WINDOW,
+        starts=STARTS,
+    )
+    # Both starts reach an exact fit, at different focus distances: never a silent pick.
+    assert not bool(res.success)
+    assert "another start converged" in res.message
+
+
+def test_reproducible_bit_for_bit():
+    image, depth = scene()
+    rng = np.random.default_rng(1)
+    target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
+    init = wrong_init(("f_number", "focus_distance"))
+    a = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+    b = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert a.message == b.message
+
+
+def test_stderr_matches_noisy_spread():
+    """The reported standard error agrees with the spread of the estimates over noisy trials."""
+    image, depth = scene()
+    true = lens()
+    clean = np.asarray(render(image, depth, true))
+    init = wrong_init(("f_number", "focus_distance"))
+    rng = np.random.default_rng(2024)
+    sigma = 0.01
+    est, se = [], []
+    for _ in range(30):
+        target = clean + sigma * rng.standard_normal(clean.shape)
+        res = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+        assert bool(res.success), res.message
+        est.append([float(res.lens.f_number), float(res.lens.focus_distance)])
+        se.append([float(res.stderr["f_number"]), float(res.stderr["focus_distance"])])
+        np.testing.assert_allclose(float(res.sigma), sigma, rtol=0.1)  # 1024 residuals: ~3% spread
+    spread = np.std(np.array(est), axis=0, ddof=1)
+    reported = np.mean(np.array(se), axis=0)
+    # 30 trials estimate a standard deviation to ~13% (1 sigma): a factor 1.5 is ~3 sigma.
+    ratio = spread / reported
+    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
+    # And the estimates are unbiased to within their spread.
+    assert np.all(
+        np.abs(np.mean(est, axis=0) - [TRUE["f_number"], TRUE["focus_distance"]])
+        < 3 * spread / np.sqrt(30) + 1e-12
+    )
+
+
+def test_focus_bracket_recovers_f_and_n(capsys):
+    """Three photos at different focus distances through one lens determine f and N apart.
+
+    Also checks `verbose=True` (progress of every start), sharing this test's compilation.
+    """
+    image, depth = scene()
+    focus = [1.2, 1.8, 2.6]
+    targets = [render(image, depth, lens(focus_distance=d)) for d in focus]
+    inits = [lens(focal_length=0.06, f_number=2.6, focus_distance=d * 1.1) for d in focus]
+    free = ("focal_length", "f_number", "focus_distance")
+    res = fit_lens(
+        image,
+        depth,
+        targets,
+        inits,
+        free=free,
+        shared=("focal_length", "f_number"),
+        max_radius=10.0,
+        starts=STARTS,
+        verbose=True,
+    )
+    assert bool(res.success), res.message
+    out = capsys.readouterr().out
+    assert "step 0: loss" in out and "d_f[2]=" in out
+    assert res.lenses.focal_length.shape == (3,)
+    np.testing.assert_allclose(np.asarray(res.lenses.focal_length), TRUE["focal_length"], rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(res.lenses.f_number), TRUE["f_number"], rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(res.lenses.focus_distance), focus, rtol=1e-4)
+    assert res.stderr["focal_length"].shape == (3,)
+    assert res.names == (
+        "focal_length",
+        "f_number",
+        "focus_distance[0]",
+        "focus_distance[1]",
+        "focus_distance[2]",
+    )
+    # f and N are each determined (finite errors), unlike from a single photo.
+    assert np.all(np.isfinite(np.asarray(res.stderr["focal_length"])))
+    assert "focus_distance" in res.summary()
+
+
+def test_solve_lens_vmap_compiles_once():
+    """Many independent scenes: one jit(vmap(solve_lens)) compilation serves every batch.
+
+    The photos differ from the renders by an exposure gain and offset, fitted as nuisance
+    parameters (`exposure=True`), in the same compilation.
+    """
+    scenes = [scene(seed=s) for s in range(3)]
+    images = np.stack([s[0] for s in scenes])
+    depths = np.stack([s[1] for s in scenes])
+    truths = [1.4, 1.6, 1.9]
+    targets = np.stack(
+        [
+            1.2 * np.asarray(render(i, d, lens(focus_distance=f))) + 0.05
+            for i, d, f in zip(images, depths, truths)
+        ]
+    )
+    init = lens(f_number=2.5, focus_distance=1.7)
+
+    @jax.jit
+    def batch(images, depths, targets):
+        fit = lambda i, d, t: solve_lens(i, d, t, init, max_radius=WINDOW, exposure=True)  # noqa: E731
+        return jax.vmap(fit)(images, depths, targets)
+
+    res = batch(images, depths, targets)
+    assert np.all(np.asarray(res.success))
+    # Batched results: fields (scenes, targets).
+    np.testing.assert_allclose(np.asarray(res.lenses.focus_distance[:, 0]), truths, rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(res.lenses.f_number), TRUE["f_number"], rtol=1e-4)
+    assert res.stderr["focus_distance"].shape == (3,)
+    np.testing.assert_allclose(np.asarray(res.gain), 1.2, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(res.offset), 0.05, rtol=1e-6)
+    assert set(res.stderr) == {"f_number", "focus_distance", "gain", "offset"}
+    res2 = batch(images[::-1], depths[::-1], targets[::-1])
+    np.testing.assert_allclose(
+        np.asarray(res2.lenses.focus_distance[:, 0]), truths[::-1], rtol=1e-4
+    )
+    assert batch._cache_size() == 1
+
+
+def test_weight_masks_pixels():
+    """A zero weight removes pixels: corrupting them leaves the fit exact."""
+    image, depth = scene()
+    target = np.array(render(image, depth, lens()))
+    weight = np.ones((H, W))
+    weight[:8] = 0
+    target[:8] = 7.0  # garbage where masked
+    res = fit_lens(
+        image,
+        depth,
+        target,
+        wrong_init(("f_number", "focus_distance")),
+        weight=weight,
+        max_radius=WINDOW,
+        starts=STARTS,
+    )
+    assert bool(res.success), res.message
+    err = rel_err(res.lens, lens(), ("f_number", "focus_distance"))
+    assert max(err.values()) < 1e-4, err
+
+
+def test_window_too_small_is_reported():
+    """Circles larger than a given max_radius are clamped: the fit says so rather than pass."""
+    image, depth = scene()
+    big = lens(f_number=1.0)  # K = 10 px: circles up to 6.05 px, over WINDOW
+    target = render(image, depth, big)
+    res = fit_lens(
+        image,
+        depth,
+        target,
+        lens(f_number=1.5, focus_distance=1.8),
+        max_radius=WINDOW,
+        starts=STARTS,
+    )
+    assert not bool(res.success) and "max_radius" in res.message
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(free=("pixel_pitch",)), "pixel_pitch cannot be fitted"),
+        (dict(free=("f_number",), shared=("focus_distance",)), "subset of free"),
+        (dict(free=("aperture",)), "free must name fields"),
+        (dict(starts=0), "starts must be"),
+        (dict(weight=np.ones((3, 3))), "weight must have shape"),
+        (dict(method="hard"), "cannot drive a fit"),
+    ],
+)
+def test_bad_arguments(kwargs, match):
+    image, depth = scene()
+    target = np.zeros((H, W))
+    with pytest.raises(ValueError, match=match):
+        fit_lens(image, depth, target, lens(), **kwargs)
+
+
+def test_bad_targets():
+    image, depth = scene()
+    with pytest.raises(ValueError, match="targets must be one image"):
+        fit_lens(image, depth, np.zeros((H, W + 1)), lens())
+    with pytest.raises(ValueError, match="init has 2 lenses but there are 3 targets"):
+        fit_lens(image, depth, [image] * 3, [lens(), lens()])
+    with pytest.raises(ValueError, match="NaN"):
+        fit_lens(image, depth, np.full((H, W), np.nan), lens())
+
+
+def test_exported():
+    assert jaxdof.fit_lens is fit_lens and jaxdof.FitResult.__doc__
