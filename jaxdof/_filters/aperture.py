@@ -23,8 +23,12 @@ through the area-preserving map of `shape.map_to_aperture` from `(s, t)` in `[0,
 - `"weighted_disc"`: random points with density `proportional to 1 - rho^2` (the applet's radial
   falloff; needs `key`): a deliberately softer, centre-weighted bokeh, not the uniform disc.
 
-Uniform patterns (`stratified`, `jittered`, `disc`) converge to the uniform disc (or polygon) as
-`N -> infinity`, up to the bilinear splat's own blur (a tent of one pixel).
+Uniform patterns (`stratified`, `jittered`, `disc`) converge as `N -> infinity` to the disc (or
+polygon) **convolved with the bilinear splat's tent**: the average of `tent(p - q - u r)` over `u` in
+the disc is `(disc * box * box)(p - q)`, while the soft filter is `(disc * box)(p - q)` (the exact
+pixel coverage). So this method keeps one extra pixel-box blur (variance `1/12` px^2 per axis) and
+an error floor against `"soft"` that more samples do not remove; a nearest-pixel splat would converge
+to `"soft"` exactly but has no gradient in the radius.
 
 **Gradients:** exact for this forward model, in `image` and `radius` (positions move linearly with
 `r`, bilinear weights are piecewise linear): `DIFFERENTIABLE_IN_RADIUS["aperture"]` is `True`.

@@ -37,27 +37,32 @@ def area_factor(blades: int | None) -> float:
     return math.pi if blades is None else 0.5 * blades * math.sin(2 * math.pi / blades)
 
 
+def _lead(values: np.ndarray, like: Array) -> Array:
+    """Static per-edge values `(b,)` as `(b, 1, ..., 1)` in `like`'s dtype, to broadcast against it."""
+    return jnp.asarray(values, like.dtype).reshape((-1,) + (1,) * like.ndim)
+
+
 def row_extent(y: Array, r: Array, blades: int | None, rotation: float) -> tuple[Array, Array]:
     """Horizontal extent `[xl, xr]` of the shape of radius `r` on the row at height `y`.
 
-    Empty rows give `xl > xr`. Broadcasts `y` against `r`.
+    Empty rows give `xl > xr`. Broadcasts `y` against `r` (same rank, or scalars).
     """
     if blades is None:
         h = jnp.sqrt(jnp.maximum(r * r - y * y, 0))
         inside = y * y <= r * r
         return jnp.where(inside, -h, 1), jnp.where(inside, h, -1)
     normals, apothem = unit_halfplanes(blades, rotation)
-    xl = jnp.full(jnp.broadcast_shapes(y.shape, r.shape), -jnp.inf, y.dtype)
-    xr = jnp.full_like(xl, jnp.inf)
-    for nx, ny in normals:  # n . (x, y) <= apothem r bounds x from one side (or the row itself)
-        rhs = apothem * r - ny * y
-        if abs(nx) < 1e-12:
-            xr = jnp.where(rhs >= 0, xr, -jnp.inf)
-        elif nx > 0:
-            xr = jnp.minimum(xr, rhs / nx)
-        else:
-            xl = jnp.maximum(xl, rhs / nx)
-    return xl, xr
+    y, r = jnp.broadcast_arrays(y, r)
+    nx, ny = normals[:, 0], normals[:, 1]
+    flat = np.abs(nx) < 1e-12  # edges parallel to the rows bound the row itself, not x
+    # n . (x, y) <= apothem r bounds x from one side, all edges at once (leading axis b)
+    rhs = apothem * r[None] - _lead(ny, y) * y[None]
+    safe_nx = _lead(np.where(flat, 1.0, nx), y)
+    bound = rhs / safe_nx
+    xr = jnp.min(jnp.where(_lead((nx > 0) & ~flat, y) > 0, bound, jnp.inf), axis=0)
+    xl = jnp.max(jnp.where(_lead((nx < 0) & ~flat, y) > 0, bound, -jnp.inf), axis=0)
+    row_ok = jnp.all(jnp.where(_lead(flat, y) > 0, rhs >= 0, True), axis=0)
+    return jnp.where(row_ok, xl, 1), jnp.where(row_ok, xr, -1)
 
 
 def polygon_pixel_overlap(ox: Array, oy: Array, r: Array, blades: int, rotation: float) -> Array:
@@ -67,60 +72,68 @@ def polygon_pixel_overlap(ox: Array, oy: Array, r: Array, blades: int, rotation:
     $\tfrac12\oint (x\,dy - y\,dx)$ along its boundary, which is the part of the polygon's boundary
     inside the pixel plus the part of the pixel's boundary inside the polygon. Each straight piece
     is a segment clipped by half-planes (Liang-Barsky / Cyrus-Beck), so the area is a fixed-size,
-    branch-free computation, differentiable almost everywhere (the polygon's vertices are linear in
-    `r`). Coordinates are taken relative to the pixel centre so that the cross products stay of
-    order 1 and float32 keeps its precision at large radii.
+    branch-free computation, vectorised over the edges, differentiable almost everywhere (the
+    polygon's vertices are linear in `r`). Coordinates are taken relative to the pixel centre so
+    that the cross products stay of order 1 and float32 keeps its precision at large radii.
     """
+    ox, oy, r = jnp.broadcast_arrays(ox, oy, r)
     verts = unit_vertices(blades, rotation)
     normals, apothem = unit_halfplanes(blades, rotation)
-    total = jnp.zeros(jnp.broadcast_shapes(ox.shape, oy.shape, r.shape), r.dtype)
     # A polygon edge lying along a pixel edge (same outward normal) must be counted once: the
     # polygon's copy is kept (inclusive, with this tolerance) and the pixel's dropped (strict).
     tol = 16 * float(jnp.finfo(r.dtype).eps) * (1 + r)
 
-    def clip_piece(ax, ay, bx, by, lo, hi):
-        # contribution 1/2 cross(p(t0), p(t1)) of the segment a + t (b - a), t in [lo, hi]
+    def piece(ax, ay, bx, by, lo, hi):
+        # 1/2 cross(p(lo), p(hi)) of the segment a + t (b - a), t in [lo, hi], summed over edges
         ok = hi > lo
         lo, hi = jnp.where(ok, lo, 0), jnp.where(ok, hi, 0)
         px, py = ax + lo * (bx - ax), ay + lo * (by - ay)
         qx, qy = ax + hi * (bx - ax), ay + hi * (by - ay)
-        return jnp.where(ok, 0.5 * (px * qy - qx * py), 0)
+        return jnp.sum(jnp.where(ok, 0.5 * (px * qy - qx * py), 0), axis=0)
 
-    # the polygon's edges, clipped to the pixel [-1/2, 1/2]^2 (pixel-centred coordinates)
-    for j in range(blades):
-        (ux, uy), (vx, vy) = verts[j], verts[(j + 1) % blades]
-        ax, ay, bx, by = ux * r - ox, uy * r - oy, vx * r - ox, vy * r - oy
-        lo, hi = jnp.zeros_like(total), jnp.ones_like(total)
-        for p0, d, unit_d in ((ax, bx - ax, vx - ux), (ay, by - ay, vy - uy)):
-            if abs(unit_d) < 1e-12:  # edge parallel to this axis (decided on the static shape)
-                inside = jnp.abs(p0) <= 0.5 + tol
-                lo, hi = jnp.where(inside, lo, 1), jnp.where(inside, hi, 0)
-                continue
-            t1, t2 = (-0.5 - p0) / d, (0.5 - p0) / d  # -1/2 <= p0 + t d <= 1/2
-            lo, hi = jnp.maximum(lo, jnp.minimum(t1, t2)), jnp.minimum(hi, jnp.maximum(t1, t2))
-        total = total + clip_piece(ax, ay, bx, by, lo, hi)
+    # the polygon's edges (leading axis b), clipped to the pixel [-1/2, 1/2]^2, pixel-centred
+    u, v = verts, np.roll(verts, -1, axis=0)
+    ax, ay = _lead(u[:, 0], r) * r[None] - ox[None], _lead(u[:, 1], r) * r[None] - oy[None]
+    bx, by = _lead(v[:, 0], r) * r[None] - ox[None], _lead(v[:, 1], r) * r[None] - oy[None]
+    lo, hi = jnp.zeros_like(ax), jnp.ones_like(ax)
+    for p0, q0, unit_d in ((ax, bx, v[:, 0] - u[:, 0]), (ay, by, v[:, 1] - u[:, 1])):
+        par = np.abs(unit_d) < 1e-12  # edge parallel to this axis (decided on the static shape)
+        d = jnp.where(_lead(par, r) > 0, 1, q0 - p0)
+        t1, t2 = (-0.5 - p0) / d, (0.5 - p0) / d  # -1/2 <= p0 + t d <= 1/2
+        inside = jnp.abs(p0) <= 0.5 + tol[None]
+        lo = jnp.where(
+            _lead(par, r) > 0, jnp.where(inside, lo, 1), jnp.maximum(lo, jnp.minimum(t1, t2))
+        )
+        hi = jnp.where(
+            _lead(par, r) > 0, jnp.where(inside, hi, 0), jnp.minimum(hi, jnp.maximum(t1, t2))
+        )
+    total = piece(ax, ay, bx, by, lo, hi)
 
-    # the pixel's edges (counter-clockwise), clipped to the polygon n . p <= apothem r
+    # the pixel's edges (counter-clockwise), clipped to the polygon n . p <= apothem r (axis b)
     corners = ((-0.5, -0.5), (0.5, -0.5), (0.5, 0.5), (-0.5, 0.5))
     edge_normals = ((0.0, -1.0), (1.0, 0.0), (0.0, 1.0), (-1.0, 0.0))
+    nx, ny = _lead(normals[:, 0], r), _lead(normals[:, 1], r)
     for k in range(4):
-        (ax, ay), (bx, by) = corners[k], corners[(k + 1) % 4]
-        lo, hi = jnp.zeros_like(total), jnp.ones_like(total)
-        for nx, ny in normals:
-            # n . (a + o + t (b - a)) <= apothem r, in the polygon's frame (pixel at o)
-            c0 = nx * (ax + ox) + ny * (ay + oy) - apothem * r
-            d = nx * (bx - ax) + ny * (by - ay)
-            if abs(d) < 1e-12:
-                same = nx * edge_normals[k][0] + ny * edge_normals[k][1] > 0
-                keep = c0 < -tol if same else c0 <= 0
-                hi = jnp.where(keep, hi, 0)
-            elif d > 0:
-                hi = jnp.minimum(hi, -c0 / d)
-            else:
-                lo = jnp.maximum(lo, -c0 / d)
-        a_x, a_y = jnp.full_like(total, ax), jnp.full_like(total, ay)
-        total = total + clip_piece(
-            a_x, a_y, jnp.full_like(total, bx), jnp.full_like(total, by), lo, hi
+        (cx, cy), (dx, dy) = corners[k], corners[(k + 1) % 4]
+        c0 = nx * (cx + ox[None]) + ny * (cy + oy[None]) - apothem * r[None]
+        d = normals[:, 0] * (dx - cx) + normals[:, 1] * (dy - cy)  # static, (b,)
+        par = np.abs(d) < 1e-12
+        same = normals @ np.asarray(edge_normals[k]) > 0
+        keep = jnp.where(_lead(same, r) > 0, c0 < -tol[None], c0 <= 0)
+        t = -c0 / _lead(np.where(par, 1.0, d), r)
+        hi_k = jnp.min(jnp.where(_lead(~par & (d > 0), r) > 0, t, 1), axis=0)
+        lo_k = jnp.max(jnp.where(_lead(~par & (d < 0), r) > 0, t, 0), axis=0)
+        alive = jnp.all(jnp.where(_lead(par, r) > 0, keep, True), axis=0)
+        hi_k = jnp.where(alive, jnp.minimum(hi_k, 1), 0)
+        lo_k = jnp.maximum(lo_k, 0)
+        full = jnp.ones_like(r)
+        total = total + piece(
+            (cx * full)[None],
+            (cy * full)[None],
+            (dx * full)[None],
+            (dy * full)[None],
+            lo_k[None],
+            hi_k[None],
         )
     return total
 

@@ -10,8 +10,7 @@ $$w_n(p - q, r) = \frac{c_n(p - q, r)}{\sum_o c_n(o, r)},\qquad
 Normalising by the total count (not by `pi r^2 n^2`) conserves energy exactly. `n = 1` is the
 hard disc. **The analytic overlap is the `n -> infinity` limit**: `c_n(o, r) / n^2` is a midpoint
 rule for the area of `disc(0, r) ∩ pixel(o)`, which converges to it at rate `O(1/n)` on the pixels the
-circle crosses (`O(1/n^1.5)` on average, by cancellation along the arc), and `sum_o c_n / n^2 ->
-pi r^2`; so `w_n -> area / (pi r^2)`, the soft filter's weight (tested in `tests/test_methods.py`).
+circle crosses, and `sum_o c_n / n^2 -> pi r^2`; so `w_n -> area / (pi r^2)`, the soft filter's weight (tested in `tests/test_methods.py`).
 Radii `<= 1/2` leave their pixel untouched, as in the soft filter.
 
 The count is exact integer arithmetic done row by row: on the sub-row at height `y` the aperture

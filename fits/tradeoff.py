@@ -1,0 +1,446 @@
+"""Speed against accuracy for every `coc_filter` method, measured side by side (issue 4).
+
+Question: for each method of the seeds' family and each value of its knob, how far is it from the
+analytic soft filter (max abs error, RMSE, PSNR), what does it cost (forward, and forward + gradient,
+per megapixel), and how well does it recover a lens when it is the forward model of a fit to targets
+rendered by the soft reference? Is every method near the Pareto front, is soft the most accurate at no
+more than the cost of supersampling at n = 8, and is `auto` >= 3x faster than soft on a scene of at
+most 4 depth levels?
+
+Run:
+
+    python fits/tradeoff.py            # 48 x 48 scenes, max radius 2, 8, 24 (about 10-15 min on 2 cores)
+    python fits/tradeoff.py --quick    # 32 x 32, radius 2 and 8, fewer knobs (a few minutes)
+
+Writes `fits/results/tradeoff.md` and `fits/results/tradeoff.png` (`--quick` adds `_quick`).
+
+Method. float32 (x64 off), 3-channel textured images, radii from a thin lens and a depth map:
+
+- `smooth`: a smooth inverse-depth field (every pixel its own radius);
+- `steps`: eight vertical bands of depth (eight radius levels, depth edges between them);
+- `planes`: a background, an in-focus rectangle and a near disc (three levels, one of them sharp).
+
+The f-number is set per scene so that the largest radius is `R` in {2, 8, 24} px, and the window
+is `max_radius=R`. Errors are against `method="soft"` on the same inputs, in units of the image
+range (1). Timings: `jax.jit`, one call to compile (reported apart), then the median of repeated calls
+(`block_until_ready`), divided by the megapixels; forward+grad is `jax.value_and_grad` of a squared
+error with respect to the image and the radius map (`auto` with respect to the image only: its radius
+map must be concrete, so it is closed over; `soft` is also timed that way for the `auto` ratio, in the
+same run). Lens fit: the f-number (log coordinate; it sets the blur scale, the focus distance is
+known) by optimistix Levenberg-Marquardt through `jaxdof.render(..., method=...)`, from a start 15 %
+off, on targets rendered by `soft` with the true lens, at R = 8; the error is its relative error.
+Methods with no gradient in the radius (`DIFFERENTIABLE_IN_RADIUS`) are not fitted. `jaxdof.fit_lens`
+has no `method` argument yet, so the fit here is a minimal optimistix LM. (Fitting the focus distance
+too from one photo converged slowly from 15 % off in a first trial, 40 steps, so it was left out.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import sys
+import time
+import timeit
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", False)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import optimistix as optx  # noqa: E402
+
+import jaxdof  # noqa: E402
+from jaxdof import ThinLens, coc_filter, coc_radius, render  # noqa: E402
+from jaxdof._filters.auto import choose_method  # noqa: E402
+from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS  # noqa: E402
+
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results"
+KEY = jax.random.key(0)
+F, D_F, PITCH = 0.05, 2.5, 1e-5  # 50 mm lens focused at 2.5 m, 10 um pixels
+
+
+def knob_table(quick: bool, radius: float):
+    """(method, label, knobs) rows; one curve per method over its knob."""
+    rows = [("soft", "", {}), ("hard", "", {}), ("auto", "", {})]
+    ss = (2, 4, 8) if quick else ((2, 4, 8, 16) if radius <= 8 else (2, 4, 8))
+    rows += [("supersample", f"n={n}", {"samples": n}) for n in ss]
+    rows += [
+        ("jitter", f"n={n}", {"samples": n, "key": KEY})
+        for n in ((4, 16) if quick else (4, 16, 64))
+    ]
+    ap = (16, 64, 256) if quick else (16, 64, 256, 1024)
+    rows += [("aperture", f"N={n}", {"samples": n}) for n in ap]
+    rows += [("layered", f"L={n}", {"layers": n}) for n in ((2, 4, 8) if quick else (2, 4, 8, 16))]
+    return rows
+
+
+def texture(size: int, seed: int = 0) -> np.ndarray:
+    """Checker of random colours, soft blobs and fine noise: edges at every scale, values in [0, 1]."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:size, 0:size] / size
+    cells = rng.uniform(size=(8, 8, 3))[(y * 8).astype(int), (x * 8).astype(int)]
+    blobs = 0.5 + 0.5 * np.sin(2 * np.pi * (3 * x + 2 * y))[..., None] * np.array([1.0, 0.5, -0.7])
+    img = 0.5 * cells + 0.3 * blobs + 0.2 * rng.uniform(size=(size, size, 3))
+    return np.clip(img, 0, 1)
+
+
+def depth_map(scene: str, size: int) -> np.ndarray:
+    """z-depth (m) of the three scenes; the lens focuses at 2.5 m."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    if scene == "smooth":  # inverse depth from 1/1.2 to 1/8 m^-1, smoothly varying
+        inv = 1 / 8 + (1 / 1.2 - 1 / 8) * (
+            0.5 + 0.5 * np.sin(2.5 * x + 1.5 * y - 1.2) * np.cos(2 * y)
+        )
+        return 1 / inv
+    if scene == "steps":  # eight vertical bands
+        levels = np.array([1.2, 1.6, 2.0, 2.5, 3.2, 4.0, 5.5, 8.0])
+        return levels[np.minimum((x * 8).astype(int), 7)]
+    if scene == "planes":  # background, an in-focus rectangle, a near disc
+        d = np.full((size, size), 8.0)
+        d[(x > 0.15) & (x < 0.6) & (y > 0.2) & (y < 0.8)] = D_F
+        d[(x - 0.7) ** 2 + (y - 0.6) ** 2 < 0.2**2] = 1.3
+        return d
+    raise ValueError(scene)
+
+
+def lens_for(depth: np.ndarray, radius: float) -> ThinLens:
+    """The lens focused at `D_F` whose largest circle on this depth map is `radius` px."""
+    r1 = float(np.max(np.asarray(coc_radius(jnp.asarray(depth), ThinLens(F, 1.0, D_F, PITCH)))))
+    return ThinLens(F, r1 / radius, D_F, PITCH)
+
+
+def median_time(fn, *args, repeat: int) -> tuple[float, float]:
+    """(compile+first call, median of `repeat` further calls) in seconds."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    times = timeit.repeat(lambda: jax.block_until_ready(fn(*args)), number=1, repeat=repeat)
+    return first, float(np.median(times))
+
+
+def fit_error(method, knobs, image, depth, lens, target, radius, steps=40):
+    """Relative error of the f-number (the blur scale) fitted through `method`, focus known."""
+    truth = float(lens.f_number)
+    y0 = jnp.log(jnp.asarray([truth * 1.15], jnp.float32))
+
+    def residual(y, args):
+        img, dep, tgt = args
+        trial = ThinLens(F, jnp.exp(y[0]), D_F, PITCH)
+        out = render(img, dep, trial, method=method, max_radius=1.5 * radius, **knobs)
+        return (out - tgt).reshape(-1)
+
+    solver = optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5)  # float32: steps at its rounding floor
+    sol = optx.least_squares(
+        residual, solver, y0, args=(image, depth, target), max_steps=steps, throw=False
+    )
+    return abs(math.exp(float(sol.value[0])) / truth - 1)
+
+
+def run(quick: bool) -> None:
+    size = 32 if quick else 48
+    radii = (2.0, 8.0) if quick else (2.0, 8.0, 24.0)
+    repeat = 3 if quick else 5
+    mp = size * size / 1e6
+    scenes = ("smooth", "steps", "planes")
+    image = jnp.asarray(texture(size), jnp.float32)
+    rows = []
+    auto_rows = []
+    t_start = time.perf_counter()
+    for R in radii:
+        setup = {}
+        for scene in scenes:
+            depth = depth_map(scene, size)
+            lens = lens_for(depth, R)
+            radius = np.asarray(coc_radius(jnp.asarray(depth, jnp.float32), lens), np.float32)
+            ref = np.asarray(coc_filter(image, jnp.asarray(radius), max_radius=R))
+            setup[scene] = (depth, lens, radius, ref)
+        for method, label, knobs in knob_table(quick, R):
+            # one compiled function per (R, method, knob), shared by the scenes (same shapes)
+            def fwd_fn(img, r, m=method, k=knobs, R=R):
+                return coc_filter(img, r, method=m, max_radius=R, **k)
+
+            def loss(img, r, tgt, m=method, k=knobs, R=R):
+                return 0.5 * jnp.sum((coc_filter(img, r, method=m, max_radius=R, **k) - tgt) ** 2)
+
+            shared_fwd = jax.jit(fwd_fn)
+            shared_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
+            for scene in scenes:
+                depth, lens, radius, ref = setup[scene]
+                rad, target = jnp.asarray(radius), jnp.asarray(ref)
+                if (
+                    method == "auto"
+                ):  # the radius map must be concrete: closed over, compiled per scene
+                    fwd = jax.jit(lambda img, r=radius: fwd_fn(img, r))
+                    grad = jax.jit(
+                        jax.value_and_grad(lambda img, r=radius, t=target: loss(img, r, t))
+                    )
+                    args, gargs = (image,), (image,)
+                else:
+                    fwd, grad, args, gargs = (
+                        shared_fwd,
+                        shared_grad,
+                        (image, rad),
+                        (image, rad, target),
+                    )
+                out = np.asarray(fwd(*args))
+                err = np.abs(out.astype(np.float64) - ref)
+                rmse = float(np.sqrt(np.mean(err**2)))
+                compile_f, t_f = median_time(fwd, *args, repeat=repeat)
+                compile_g, t_g = median_time(grad, *gargs, repeat=repeat)
+                fit = None
+                fitted = DIFFERENTIABLE_IN_RADIUS[method] or method == "layered"
+                if (
+                    R == 8.0 and fitted and method != "auto"
+                ):  # auto fits through soft (traced radius)
+                    fit = fit_error(
+                        method, knobs, image, jnp.asarray(depth, jnp.float32), lens, target, R
+                    )
+                row = dict(
+                    scene=scene,
+                    R=R,
+                    method=method,
+                    knob=label,
+                    max_err=float(err.max()),
+                    rmse=rmse,
+                    psnr=float(20 * np.log10(1 / rmse)) if rmse > 0 else math.inf,
+                    fwd_ms_per_mp=1e3 * t_f / mp,
+                    grad_ms_per_mp=1e3 * t_g / mp,
+                    compile_s=compile_f + compile_g,
+                    fit_err=fit,
+                    choice=choose_method(radius, max_radius=R) if method == "auto" else "",
+                )
+                rows.append(row)
+                print(
+                    f"{scene:7s} R={R:4.0f} {method:11s} {label:7s} max={row['max_err']:.2e} "
+                    f"rmse={rmse:.2e} fwd={row['fwd_ms_per_mp']:9.1f} ms/MP grad={row['grad_ms_per_mp']:9.1f} "
+                    f"fit={'' if fit is None else f'{fit:.1e}'} {row['choice']} "
+                    f"[{time.perf_counter() - t_start:.0f}s]",
+                    flush=True,
+                )
+        for scene in scenes:
+            # auto against soft, both with the radius map closed over, interleaved in one run
+            radius, ref = setup[scene][2], setup[scene][3]
+            soft_c = jax.jit(
+                lambda img, r=radius, R=R: coc_filter(img, r, method="soft", max_radius=R)
+            )
+            auto_c = jax.jit(
+                lambda img, r=radius, R=R: coc_filter(img, r, method="auto", max_radius=R)
+            )
+            jax.block_until_ready((soft_c(image), auto_c(image)))
+            ts, ta = [], []
+            for _ in range(3 * repeat):
+                ts.append(timeit.timeit(lambda f=soft_c: jax.block_until_ready(f(image)), number=1))
+                ta.append(timeit.timeit(lambda f=auto_c: jax.block_until_ready(f(image)), number=1))
+            t_inspect = float(
+                np.median(
+                    timeit.repeat(
+                        lambda r=radius, R=R: choose_method(r, max_radius=R), number=1, repeat=5
+                    )
+                )
+            )
+            auto_err = float(np.abs(np.asarray(auto_c(image), np.float64) - ref).max())
+            auto_rows.append(
+                dict(
+                    scene=scene,
+                    R=R,
+                    levels=int(np.unique(np.where(radius <= 0.5, 0, radius)).size),
+                    choice=choose_method(radius, max_radius=R),
+                    soft_ms=1e3 * np.median(ts),
+                    auto_ms=1e3 * np.median(ta),
+                    inspect_ms=1e3 * t_inspect,
+                    max_err=auto_err,
+                )
+            )
+            print(auto_rows[-1], flush=True)
+    write(rows, auto_rows, quick, size, radii, repeat, time.perf_counter() - t_start)
+
+
+def pareto_flags(rows):
+    """A row is on the front of its (scene, R) panel if no other row is both faster and more accurate."""
+    flags = []
+    for r in rows:
+        panel = [o for o in rows if o["scene"] == r["scene"] and o["R"] == r["R"]]
+        dominated = any(
+            o["fwd_ms_per_mp"] < r["fwd_ms_per_mp"] and o["rmse"] < r["rmse"]
+            for o in panel
+            if o is not r
+        )
+        flags.append(not dominated)
+    return flags
+
+
+def write(rows, auto_rows, quick, size, radii, repeat, elapsed):
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    suffix = "_quick" if quick else ""
+    front = pareto_flags(rows)
+    lines = [
+        "# Speed against accuracy of the `coc_filter` methods",
+        "",
+        f"Generated by `python fits/tradeoff.py{' --quick' if quick else ''}` (see its docstring for the method).",
+        "",
+        "## Conditions",
+        "",
+        f"- images {size} x {size} x 3, float32; max radius {', '.join(f'{r:g}' for r in radii)} px; "
+        f"medians of {repeat} timed calls after one compiling call; total run {elapsed / 60:.1f} min",
+        f"- jax {jax.__version__}, jaxdof {jaxdof.__version__}, Python {platform.python_version()}, "
+        f"{platform.machine()} CPU, {os.cpu_count()} cores visible, backend {jax.default_backend()}",
+        f"- load average at the end: {', '.join(f'{x:.1f}' for x in os.getloadavg())} "
+        "(the machine was shared with other jobs: timings are noisy, ratios within one panel are "
+        "what to read)",
+        '- errors against `method="soft"`, image values in [0, 1]; PSNR = 20 log10(1 / RMSE)',
+        "- fit: relative error of the f-number (blur scale; focus distance known) fitted through the "
+        "method, start 15 % off, targets rendered by soft; only at R = 8; `-`: not fitted (no gradient "
+        "in the radius; `auto` fits through `soft` because the radius is traced)",
+        "- front: on the Pareto front of its panel (no other method/knob both faster and more accurate)",
+        "",
+        f"![Pareto plot](tradeoff{suffix}.png)",
+        "",
+        "## Every method and knob",
+        "",
+        "| scene | R | method | knob | max err | RMSE | PSNR dB | fwd ms/MP | fwd+grad ms/MP | compile s | fit err | front |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r, f in zip(rows, front):
+        fit = "-" if r["fit_err"] is None else f"{r['fit_err']:.1e}"
+        knob = r["knob"] + (f" ({r['choice']})" if r["choice"] else "")
+        lines.append(
+            f"| {r['scene']} | {r['R']:g} | {r['method']} | {knob} | {r['max_err']:.1e} | {r['rmse']:.1e} | "
+            f"{r['psnr']:.1f} | {r['fwd_ms_per_mp']:.0f} | {r['grad_ms_per_mp']:.0f} | {r['compile_s']:.1f} | "
+            f"{fit} | {'yes' if f else ''} |"
+        )
+    lines += [
+        "",
+        "## `auto` against `soft` (radius map closed over; both timed interleaved in the same run)",
+        "",
+        "| scene | R | distinct radii | auto chose | soft ms | auto ms | speed-up | inspection ms | max err vs soft |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for a in auto_rows:
+        lines.append(
+            f"| {a['scene']} | {a['R']:g} | {a['levels']} | {a['choice']} | {a['soft_ms']:.2f} | "
+            f"{a['auto_ms']:.2f} | {a['soft_ms'] / a['auto_ms']:.1f}x | {a['inspect_ms']:.2f} | {a['max_err']:.1e} |"
+        )
+    lines += ["", "## Goals", ""]
+    lines += goal_lines(rows, auto_rows, front)
+    (RESULTS / f"tradeoff{suffix}.md").write_text("\n".join(lines) + "\n")
+    plot(rows, RESULTS / f"tradeoff{suffix}.png", radii)
+    print("\n".join(lines))
+
+
+def goal_lines(rows, auto_rows, front):
+    out = []
+    panels = sorted({(r["scene"], r["R"]) for r in rows})
+    # soft most accurate at <= the cost of supersample n = 8
+    ok, detail = 0, []
+    for scene, R in panels:
+        soft = next(
+            r for r in rows if r["scene"] == scene and r["R"] == R and r["method"] == "soft"
+        )
+        ss8 = next(
+            (
+                r
+                for r in rows
+                if r["scene"] == scene
+                and r["R"] == R
+                and r["method"] == "supersample"
+                and r["knob"] == "n=8"
+            ),
+            None,
+        )
+        if ss8 is None:
+            continue
+        cheaper = soft["fwd_ms_per_mp"] <= ss8["fwd_ms_per_mp"]
+        ok += cheaper
+        detail.append(
+            f"{scene}/R={R:g}: soft {soft['fwd_ms_per_mp']:.0f} vs supersample n=8 {ss8['fwd_ms_per_mp']:.0f} ms/MP (RMSE of n=8: {ss8['rmse']:.1e})"
+        )
+    out.append(
+        f"- soft (the reference, error 0) costs no more than supersample n = 8 in {ok}/{len(detail)} panels: "
+        + "; ".join(detail)
+    )
+    # every method near the front
+    by_method = {}
+    for r, f in zip(rows, front):
+        by_method.setdefault(r["method"], []).append(f)
+    out.append(
+        "- rows on their panel's Pareto front, per method: "
+        + ", ".join(f"{m} {sum(v)}/{len(v)}" for m, v in by_method.items())
+    )
+    few = [a for a in auto_rows if a["levels"] <= 4]
+    out.append(
+        "- auto vs soft on scenes of <= 4 radius levels: "
+        + "; ".join(
+            f"{a['scene']}/R={a['R']:g} ({a['levels']} levels, {a['choice']}): {a['soft_ms'] / a['auto_ms']:.1f}x"
+            for a in few
+        )
+    )
+    return out
+
+
+def plot(rows, path, radii):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = ("smooth", "steps", "planes")
+    fig, axes = plt.subplots(len(radii), 3, figsize=(13, 3.6 * len(radii)), squeeze=False)
+    colours = dict(
+        soft="k",
+        hard="tab:red",
+        supersample="tab:blue",
+        jitter="tab:orange",
+        aperture="tab:green",
+        layered="tab:purple",
+        auto="tab:gray",
+    )
+    floor = 1e-8  # soft and auto have zero or rounding-level error: drawn at the plot's floor
+    for i, R in enumerate(radii):
+        for j, scene in enumerate(scenes):
+            ax = axes[i, j]
+            for method, c in colours.items():
+                pts = [
+                    r for r in rows if r["scene"] == scene and r["R"] == R and r["method"] == method
+                ]
+                if not pts:
+                    continue
+                x = [p["fwd_ms_per_mp"] for p in pts]
+                y = [max(p["rmse"], floor) for p in pts]
+                ax.plot(x, y, "o-", color=c, label=method, ms=4)
+                for p, xx, yy in zip(pts, x, y):
+                    if p["knob"]:
+                        ax.annotate(
+                            p["knob"],
+                            (xx, yy),
+                            fontsize=6,
+                            xytext=(2, 2),
+                            textcoords="offset points",
+                        )
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_title(f"{scene}, max radius {R:g} px", fontsize=9)
+            ax.set_xlabel("forward time (ms per megapixel)", fontsize=8)
+            ax.set_ylabel("RMSE vs soft", fontsize=8)
+            ax.grid(True, which="both", alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(
+        "coc_filter methods: error against the analytic soft filter vs cost (lower-left is better)"
+    )
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "--quick", action="store_true", help="32 px images, radius 2 and 8, fewer knobs"
+    )
+    run(parser.parse_args().quick)
+    sys.exit(0)
