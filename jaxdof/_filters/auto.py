@@ -24,12 +24,12 @@ from .common import is_concrete, tap_offsets
 
 logger = logging.getLogger("jaxdof")
 
-# Cost of one FFT layer relative to one soft-gather tap over the same image. Measured once on the
-# development CPU (128 x 128 x 3 float32, max radius 8: soft 201 taps ~7 ms, layered with 4 levels
-# ~2.3 ms), a layer (mask, one padded rFFT, one product) costs ~12-15 taps; twice that is used so
-# that "auto" picks the layered filter only when it clearly wins (the FFT's log factor also makes a
-# layer dearer on larger frames).
-LAYER_COST_IN_TAPS = 24.0
+# Cost of one FFT layer relative to one soft-gather tap over the same image, measured on CPU: at
+# 128 x 128 x 3 float32, max radius 8 (201 taps), a layer costs ~12-15 taps; at 32 x 32 x 3
+# (fits/tradeoff.py --quick) ~50 taps (8 layers 2.9 ms against soft 1.4 ms), because a small frame
+# leaves the per-layer overhead uncovered. The larger figure is used, so that "auto" picks layers
+# only where they win on small frames too (on large frames it then gives away some speed).
+LAYER_COST_IN_TAPS = 48.0
 #: Never more layers than this (memory: the padded spectra are accumulated one level at a time, but
 #: the assignment sorts the map once per call).
 MAX_LAYERS = 32
