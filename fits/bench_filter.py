@@ -140,8 +140,17 @@ def main(argv=None) -> None:
         for name in variants(max_radius):
             (wf, cf), (wg, cg) = t[(name, "fwd")], t[(name, "grad")]
             rows.append(
-                (max_radius, taps, name, wf / mpix, wg / mpix, cf / mpix, cg / mpix,
-                 compile_s[(name, "fwd")], compile_s[(name, "grad")])
+                (
+                    max_radius,
+                    taps,
+                    name,
+                    wf / mpix,
+                    wg / mpix,
+                    cf / mpix,
+                    cg / mpix,
+                    compile_s[(name, "fwd")],
+                    compile_s[(name, "grad")],
+                )
             )
             print(
                 f"R={max_radius:<5g} taps={taps:<4d} {name:<15s} forward {wf / mpix:8.4f} s/MP "

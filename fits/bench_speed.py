@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import pathlib
 import statistics
@@ -47,7 +46,12 @@ RESULTS = pathlib.Path(__file__).parent / "results"
 
 def program_bytes(compiled) -> int:
     m = compiled.memory_analysis()
-    return m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes - m.alias_size_in_bytes
+    return (
+        m.argument_size_in_bytes
+        + m.output_size_in_bytes
+        + m.temp_size_in_bytes
+        - m.alias_size_in_bytes
+    )
 
 
 def measure(size: int, max_radius: float, repeats: int, *, run: bool = True) -> dict:
@@ -107,9 +111,13 @@ HEADER = [
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
-    parser.add_argument("--size-radius", type=float, default=4.0, help="max_radius of the size sweep")
+    parser.add_argument(
+        "--size-radius", type=float, default=4.0, help="max_radius of the size sweep"
+    )
     parser.add_argument("--radii", type=float, nargs="+", default=[2, 4, 8, 16, 32, 64])
-    parser.add_argument("--radius-size", type=int, default=256, help="image side of the radius sweep")
+    parser.add_argument(
+        "--radius-size", type=int, default=256, help="image side of the radius sweep"
+    )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--quick", action="store_true", help="tiny smoke run")
     parser.add_argument("--out", type=pathlib.Path, default=RESULTS / "speed.md")
@@ -143,7 +151,8 @@ def main(argv=None) -> None:
     lines = [
         "# Speed and memory of the soft filter against image size and blur radius",
         "",
-        "Produced by `python fits/bench_speed.py`" + (f" `{' '.join(argv)}`" if argv else "")
+        "Produced by `python fits/bench_speed.py`"
+        + (f" `{' '.join(argv)}`" if argv else "")
         + f"; float32, RGB, radii uniform in [0, max_radius], jit; medians of {args.repeats} calls "
         "(forward and fwd+grad timed in turns after a warm-up), per megapixel; compile time apart; "
         "memory from XLA's buffer assignment of the compiled program (arguments + outputs + "
@@ -192,7 +201,9 @@ def main(argv=None) -> None:
     print(f"wrote {args.out}")
 
     args.out.with_suffix(".json").write_text(
-        json.dumps({"by_size": by_size, "by_radius": by_radius, "memory": mem, "info": info}, indent=1)
+        json.dumps(
+            {"by_size": by_size, "by_radius": by_radius, "memory": mem, "info": info}, indent=1
+        )
     )
     plot(by_size, by_radius, info, args.out.with_suffix(".png"))
 
@@ -220,7 +231,9 @@ def plot(by_size: list, by_radius: list, info: dict, png: pathlib.Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
     if len(by_radius) >= 2:  # guide: the area law R^2 through the first point
         x = np.array([r["R"] for r in by_radius], float)
-        axes[1].loglog(x, by_radius[0]["cpu_fwd"] * (x / x[0]) ** 2, ":", color="grey", label="~R^2")
+        axes[1].loglog(
+            x, by_radius[0]["cpu_fwd"] * (x / x[0]) ** 2, ":", color="grey", label="~R^2"
+        )
     for ax, rows, key in ((axes[0], by_size, "size"), (axes[1], by_radius, "R")):
         ax.set_xticks([r[key] for r in rows])  # after every loglog call, which resets the ticks
         ax.xaxis.set_major_formatter(ScalarFormatter())

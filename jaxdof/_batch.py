@@ -96,8 +96,12 @@ def render_batch(
         )
     if max_radius is None:
         if not is_concrete(depths, lens):
-            raise ValueError("render_batch: under jit pass max_radius=<float> (pixels), a static number")
-        lens_b = lens if per_scene else jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,)), lens)
+            raise ValueError(
+                "render_batch: under jit pass max_radius=<float> (pixels), a static number"
+            )
+        lens_b = (
+            lens if per_scene else jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,)), lens)
+        )
         radii = jax.vmap(coc_radius)(depths, lens_b)
         max_radius = float(jnp.max(radii)) if radii.size else 0.0
     mesh = batch_mesh() if mesh is None else mesh
@@ -114,7 +118,9 @@ def render_batch(
         lens = shard_batch(jax.tree_util.tree_map(pad, lens), mesh)
 
     def one(image, depth, lens_i):
-        return render(image, depth, lens_i, method=method, max_radius=max_radius, normalize=normalize)
+        return render(
+            image, depth, lens_i, method=method, max_radius=max_radius, normalize=normalize
+        )
 
     out_sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))
     fn = jax.jit(jax.vmap(one, in_axes=(0, 0, lens_axes)), out_shardings=out_sharding)
