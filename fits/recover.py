@@ -1,0 +1,530 @@
+"""How well does `jaxdof.fit_lens` recover a lens, against the Cramér-Rao bound and scipy? (issue 3)
+
+Questions:
+
+1. From one photo, are `f_number` and `focus_distance` recovered from wrong starts on procedural
+   scenes, and is the spread over noisy trials at the Cramér-Rao bound (CRB) computed from the
+   Jacobian at the truth? Does the reported standard error match that spread?
+2. Does a focus bracket (three photos, `f` and `N` shared) determine `f` and `N` apart, and how well?
+3. What do wall time and function evaluations look like against `scipy.optimize.least_squares`
+   with a finite-difference Jacobian on the same (jitted) forward model?
+
+Run:
+
+    python fits/recover.py            # 24 x 24 scenes, 30 trials per noise level (~10-15 min on 2 cores)
+    python fits/recover.py --quick    # 6 trials, fewer timing runs (a few minutes)
+
+Writes `fits/results/recover.md` and `fits/results/recover.png` (`--quick` adds `_quick`).
+
+Method. float64. Grey 24 x 24 textures (uniform noise smoothed by a 0.7 px Gaussian) on four depth
+maps: `planes` (three fronto-parallel bands at 1.2, 2 and 3.5 m), `slant` (a plane from 1 to 3 m),
+`steps` (six random depth steps in 1-4 m), `smooth` (smoothed random inverse depth in 1-4 m).
+The true lens is f = 50 mm, N = 2, pixel pitch 80 um (large pixels, so that circles of a few pixels
+fit a small image), focus distance 1.6 m (1.8 m for `smooth`), giving K ~ 4.5-5 px and circles up to ~3.6 px. Targets are the
+soft render plus Gaussian noise of standard deviation sigma in {0, 0.001, 0.01, 0.03} (the image is
+in [0.2, 0.8]). Each trial starts from a lens off by a random factor in [1/2, 2] in K (through N)
+and a random +-30 % in the focus distance, and fits `free=("f_number", "focus_distance")` with the
+default solver and starts, `max_radius=6` px (fixed, so that every fit shares one compilation).
+The CRB is `sigma^2 (J^T J)^{-1}` with `J` the Jacobian of the render with respect to (N, d_f) at
+the truth (`jax.jacfwd` of `jaxdof.render`, independent of the fitting code), and for K by the
+delta method. The RMSE is about the truth (bias included).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import jax
+
+
+jax.config.update("jax_enable_x64", True)
+
+import equinox as eqx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import optimistix as optx  # noqa: E402
+import scipy  # noqa: E402
+import scipy.ndimage  # noqa: E402
+import scipy.optimize  # noqa: E402
+
+import jaxdof  # noqa: E402
+from jaxdof import ThinLens, fit_lens, render  # noqa: E402
+
+
+H = W = 24
+PITCH = 8e-5
+F = 0.05
+N_TRUE = 2.0
+WINDOW = 6.0
+SIGMAS = (0.0, 0.001, 0.01, 0.03)
+FREE = ("f_number", "focus_distance")
+
+
+def texture(rng):
+    img = scipy.ndimage.gaussian_filter(rng.uniform(size=(H, W)), 0.7)
+    img = (img - img.min()) / (img.max() - img.min())
+    return 0.2 + 0.6 * img
+
+
+def scenes(rng):
+    yy, xx = np.mgrid[0:H, 0:W]
+    out = {}
+    out["planes"] = np.select([xx < W // 3, xx < 2 * W // 3], [1.2, 2.0], 3.5).astype(float)
+    out["slant"] = 1.0 + 2.0 * xx / (W - 1)
+    edges = np.sort(rng.choice(np.arange(3, W - 3), 5, replace=False))
+    levels = rng.uniform(1.0, 4.0, size=6)
+    out["steps"] = levels[np.searchsorted(edges, xx[0], side="right")][None, :] + 0 * yy
+    inv = scipy.ndimage.gaussian_filter(rng.standard_normal((H, W)), 6.0)
+    inv = (inv - inv.min()) / (inv.max() - inv.min())
+    out["smooth"] = 1 / (1 / 4.0 + inv * (1 / 1.0 - 1 / 4.0))
+    return {k: (texture(rng), v.astype(np.float64)) for k, v in out.items()}
+
+
+def true_lens(name):
+    return ThinLens(F, N_TRUE, 1.8 if name == "smooth" else 1.6, PITCH)
+
+
+def blur_scale(n, d_f):
+    return F * F / (2 * n * (d_f - F) * PITCH)
+
+
+@jax.jit
+def _forward(image, depth, n, d_f):
+    return render(image, depth, ThinLens(F, n, d_f, PITCH), max_radius=WINDOW)
+
+
+@jax.jit
+def _jacobian(image, depth, theta):
+    """d render / d (N, d_f) at `theta`, by forward mode (independent of the fitting code)."""
+
+    def model(theta):
+        lens = ThinLens(F, theta[0], theta[1], PITCH)
+        return render(image, depth, lens, max_radius=WINDOW).ravel()
+
+    return jax.jacfwd(model)(theta)
+
+
+def crb(image, depth, lens, sigma):
+    """CRB standard deviations of (N, d_f) and of K, from the Jacobian of the render at the truth."""
+    theta = jnp.array([float(lens.f_number), float(lens.focus_distance)])
+    jac = np.asarray(_jacobian(jnp.asarray(image), jnp.asarray(depth), theta))
+    cov = sigma**2 * np.linalg.inv(jac.T @ jac)
+    n, d_f = float(theta[0]), float(theta[1])
+    k = blur_scale(n, d_f)
+    grad_k = np.array([-k / n, -k / (d_f - F)])
+    return np.sqrt(np.diag(cov)), float(np.sqrt(grad_k @ cov @ grad_k)), cov
+
+
+def random_init(rng, lens):
+    n0, d0 = float(lens.f_number), float(lens.focus_distance)
+    d = d0 * rng.uniform(0.7, 1.3)
+    k = blur_scale(n0, d0) * np.exp(rng.uniform(np.log(0.5), np.log(2.0)))
+    return ThinLens(F, F * F / (2 * k * (d - F) * PITCH), d, PITCH)
+
+
+def scipy_fit(fwd, target, init, tol):
+    """scipy least_squares, 2-point FD Jacobian, same log coordinates, counting forward renders."""
+    count = [0]
+
+    def fun(x):
+        count[0] += 1
+        n, d_f = np.exp(x[0]), F + np.exp(x[1])
+        return (np.asarray(fwd(jnp.asarray(n), jnp.asarray(d_f))) - target).ravel()
+
+    x0 = np.array([np.log(float(init.f_number)), np.log(float(init.focus_distance) - F)])
+    t = time.perf_counter()
+    sol = scipy.optimize.least_squares(
+        fun, x0, jac="2-point", method="trf", xtol=tol, ftol=tol, gtol=tol
+    )
+    wall = time.perf_counter() - t
+    return np.exp(sol.x[0]), F + np.exp(sol.x[1]), wall, count[0], sol.status > 0
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="6 trials per noise level, fewer timings")
+    ap.add_argument(
+        "--report-only", action="store_true", help="rewrite the report from the saved raw results"
+    )
+    ap.add_argument(
+        "--trials", type=int, default=None, help="override the number of trials (smoke runs)"
+    )
+    args = ap.parse_args(argv)
+    if args.report_only:
+        suffix = "_quick" if args.quick else ""
+        raw = json.loads(
+            (Path(__file__).parent / "results" / f"recover{suffix}_raw.json").read_text()
+        )
+        return report(raw, args.quick)
+    trials = args.trials or (6 if args.quick else 30)
+    n_timing = min(trials, 3 if args.quick else 5)
+    n_bracket = min(trials, 3 if args.quick else 10)
+    (Path(__file__).parent / "results").mkdir(exist_ok=True)
+    rng = np.random.default_rng(20261122)
+    sc = scenes(rng)
+    t_start = time.perf_counter()
+
+    # ---------------------------------------------------------------- 1. recovery vs CRB
+    rows = []
+    compile_s = None
+    for name, (image, depth) in sc.items():
+        lens = true_lens(name)
+        clean = np.asarray(render(image, depth, lens, max_radius=WINDOW))
+        for sigma in SIGMAS:
+            est, se, ok, steps, walls = [], [], [], [], []
+            for _ in range(trials):
+                target = clean + sigma * rng.standard_normal(clean.shape)
+                init = random_init(rng, lens)
+                t = time.perf_counter()
+                res = fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW)
+                dt = time.perf_counter() - t
+                if compile_s is None:
+                    compile_s = dt
+                else:
+                    walls.append(dt)
+                n, d_f = float(res.lens.f_number), float(res.lens.focus_distance)
+                est.append([n, d_f, blur_scale(n, d_f)])
+                k_se = float(
+                    np.sqrt(
+                        np.array([-1 / n, -1 / (d_f - F)])
+                        @ np.asarray(res.covariance)
+                        @ np.array([-1 / n, -1 / (d_f - F)])
+                    )
+                    * blur_scale(n, d_f)
+                )
+                se.append(
+                    [float(res.stderr["f_number"]), float(res.stderr["focus_distance"]), k_se]
+                )
+                ok.append(bool(res.success))
+                steps.append(int(res.num_steps))
+            est, se = np.array(est), np.array(se)
+            truth = np.array([N_TRUE, float(lens.focus_distance), float(lens.blur_scale)])
+            rmse = np.sqrt(np.mean((est - truth) ** 2, axis=0))
+            max_rel = np.max(np.abs(est / truth - 1), axis=0)
+            if sigma > 0:
+                c, ck, _ = crb(image, depth, lens, sigma)
+                bound = np.array([c[0], c[1], ck])
+            else:
+                bound = np.zeros(3)
+            rows.append(
+                dict(
+                    scene=name,
+                    sigma=sigma,
+                    success=float(np.mean(ok)),
+                    rmse=rmse,
+                    max_rel=max_rel,
+                    stderr=se.mean(axis=0),
+                    spread=est.std(axis=0, ddof=1),
+                    crb=bound,
+                    steps=float(np.median(steps)),
+                    wall=float(np.median(walls)) if walls else float("nan"),
+                )
+            )
+            r = rows[-1]
+            print(
+                f"{name:7s} sigma={sigma:<6g} ok={r['success']:.2f} rmse(N,d_f,K)={rmse} "
+                f"crb={bound} stderr={r['stderr']} steps={r['steps']}",
+                flush=True,
+            )
+
+    # ---------------------------------------------------------------- 2. focus bracket
+    image, depth = sc["slant"]
+    focus = [1.2, 1.8, 2.6]
+    cleans = [
+        np.asarray(render(image, depth, ThinLens(F, N_TRUE, d, PITCH), max_radius=WINDOW))
+        for d in focus
+    ]
+    bracket = []
+    sigma_b = 0.01
+    for _ in range(n_bracket):
+        targets = [c + sigma_b * rng.standard_normal(c.shape) for c in cleans]
+        inits = [
+            ThinLens(
+                F * rng.uniform(0.8, 1.25),
+                N_TRUE * rng.uniform(0.7, 1.4),
+                d * rng.uniform(0.9, 1.1),
+                PITCH,
+            )
+            for d in focus
+        ]
+        res = fit_lens(
+            image,
+            depth,
+            targets,
+            inits,
+            free=("focal_length", "f_number", "focus_distance"),
+            shared=("focal_length", "f_number"),
+            max_radius=10.0,
+        )
+        bracket.append(
+            (
+                float(res.lens.focal_length),
+                float(res.lens.f_number),
+                float(res.stderr["focal_length"][0]),
+                float(res.stderr["f_number"][0]),
+                bool(res.success),
+            )
+        )
+    bracket = np.array(bracket)
+    print("bracket", bracket, flush=True)
+
+    # ---------------------------------------------------------------- 3. timing vs scipy
+    timing = []
+    sigma_t = 0.01
+    for name, (image, depth) in sc.items():
+        lens = true_lens(name)
+        fwd = partial(
+            _forward, jnp.asarray(image), jnp.asarray(depth)
+        )  # one compilation for all scenes
+        clean = np.asarray(fwd(lens.f_number, lens.focus_distance))
+        for _ in range(n_timing):
+            target = clean + sigma_t * rng.standard_normal(clean.shape)
+            init = random_init(rng, lens)
+            fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW, starts=1)  # warm
+            t = time.perf_counter()
+            r1 = fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW, starts=1)
+            t1 = time.perf_counter() - t
+            t = time.perf_counter()
+            fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW)
+            t4 = time.perf_counter() - t
+            n_s, d_s, ts, evals, sok = scipy_fit(fwd, target, init, 1e-8)
+            timing.append(
+                dict(
+                    scene=name,
+                    ours1=t1,
+                    ours4=t4,
+                    steps=int(r1.num_steps),
+                    scipy=ts,
+                    evals=evals,
+                    scipy_ok=sok,
+                    ours_ok=bool(r1.success),
+                    # Agreement in units of the reported standard error.
+                    dN=abs(n_s - float(r1.lens.f_number)) / float(r1.stderr["f_number"]),
+                    dD=abs(d_s - float(r1.lens.focus_distance))
+                    / float(r1.stderr["focus_distance"]),
+                )
+            )
+            print(timing[-1], flush=True)
+
+    total = time.perf_counter() - t_start
+    raw = dict(
+        rows=[
+            {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+            for r in rows
+        ],
+        bracket=bracket.tolist(),
+        timing=timing,
+        compile_s=compile_s,
+        trials=trials,
+        total=total,
+    )
+    suffix = "_quick" if args.quick else ""
+    (Path(__file__).parent / "results" / f"recover{suffix}_raw.json").write_text(json.dumps(raw))
+    report(raw, args.quick)
+
+
+def report(raw, quick):
+    rows = [
+        {k: (np.array(v) if isinstance(v, list) else v) for k, v in r.items()} for r in raw["rows"]
+    ]
+    write(
+        rows,
+        np.array(raw["bracket"]),
+        raw["timing"],
+        raw["compile_s"],
+        raw["trials"],
+        raw["total"],
+        quick,
+    )
+
+
+def fmt(x, digits=3):
+    return f"{x:.{digits}g}"
+
+
+def write(rows, bracket, timing, compile_s, trials, total, quick):
+    out = Path(__file__).parent / "results"
+    out.mkdir(exist_ok=True)
+    suffix = "_quick" if quick else ""
+    md = []
+    md.append("# Lens recovery: accuracy against the Cramér-Rao bound, and cost against scipy\n")
+    md.append(
+        "Produced by `python fits/recover.py"
+        + (" --quick" if quick else "")
+        + "`. "
+        + __doc__.split("Method.")[1].split('"""')[0].strip().replace("\n", " ")
+        + "\n"
+    )
+    md.append("## Conditions\n")
+    md.append(
+        f"- jaxdof {jaxdof.__version__}, jax {jax.__version__}, equinox {eqx.__version__}, "
+        f"optimistix {optx.__version__ if hasattr(optx, '__version__') else '?'}, numpy {np.__version__}, scipy {scipy.__version__}, Python {sys.version.split()[0]}"
+    )
+    md.append(
+        f"- {platform.platform()}, {platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores "
+        f"(shared with other jobs: load average {os.getloadavg()[0]:.1f} at the end, so timings are noisy; the ratios are measured in one run, interleaved)"
+    )
+    md.append(
+        f"- {trials} trials per scene and noise level; total run time {total / 60:.1f} min; first fit (compilation) {compile_s:.1f} s\n"
+    )
+
+    md.append("## 1. One photo: `f_number` and `focus_distance` from wrong starts\n")
+    md.append(
+        "RMSE over the trials about the truth; `CRB` the Cramér-Rao standard deviation at the truth; `stderr` the mean reported standard error; `spread` the sample standard deviation of the estimates. K in pixels, d_f in metres.\n"
+    )
+    md.append(
+        "| scene | sigma | success | max rel err N / d_f / K | RMSE N | CRB N | stderr N | RMSE d_f | CRB d_f | stderr d_f | RMSE K | CRB K | RMSE/CRB (N, d_f, K) | stderr/spread (N, d_f) | median steps | median wall (s) |"
+    )
+    md.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        ratio = r["rmse"] / np.where(r["crb"] > 0, r["crb"], np.nan)
+        sr = r["stderr"][:2] / np.where(r["spread"][:2] > 0, r["spread"][:2], np.nan)
+        md.append(
+            f"| {r['scene']} | {r['sigma']:g} | {r['success']:.2f} | "
+            + " / ".join(fmt(x, 2) for x in r["max_rel"])
+            + f" | {fmt(r['rmse'][0])} | {fmt(r['crb'][0])} | {fmt(r['stderr'][0])} | {fmt(r['rmse'][1])} | {fmt(r['crb'][1])} | {fmt(r['stderr'][1])} | {fmt(r['rmse'][2])} | {fmt(r['crb'][2])} | "
+            + ", ".join(fmt(x, 3) for x in ratio)
+            + " | "
+            + ", ".join(fmt(x, 3) for x in sr)
+            + f" | {r['steps']:g} | {fmt(r['wall'], 2)} |"
+        )
+    noisy = [r for r in rows if r["sigma"] > 0]
+    ratios = np.array([r["rmse"] / r["crb"] for r in noisy])
+    srat = np.array([r["stderr"][:2] / r["spread"][:2] for r in noisy])
+    md.append("")
+    md.append(
+        f"Over the {len(noisy)} noisy cells: RMSE/CRB from {ratios.min():.2f} to {ratios.max():.2f} (median {np.median(ratios):.2f}); "
+        f"reported stderr / observed spread from {srat.min():.2f} to {srat.max():.2f}. Noise-free: largest relative error "
+        f"{max(r['max_rel'].max() for r in rows if r['sigma'] == 0):.2g}; success rate over all fits "
+        f"{np.mean([r['success'] for r in rows]):.3f}.\n"
+    )
+
+    md.append("## 2. Focus bracket: `f` and `N` apart\n")
+    md.append(
+        f"`slant` scene, three photos focused at 1.2, 1.8, 2.6 m, sigma = 0.01, {len(bracket)} trials from starts off by up to 25 % in f, 40 % in N, 10 % in d_f; "
+        "`free=(focal_length, f_number, focus_distance)`, `shared=(focal_length, f_number)`.\n"
+    )
+    md.append("| | truth | mean | RMSE | mean reported stderr | spread |")
+    md.append("|---|---|---|---|---|---|")
+    for i, (label, truth) in enumerate((("focal length (m)", F), ("f-number", N_TRUE))):
+        col = bracket[:, i]
+        md.append(
+            f"| {label} | {truth:g} | {col.mean():.5g} | {np.sqrt(np.mean((col - truth) ** 2)):.3g} | {bracket[:, 2 + i].mean():.3g} | {col.std(ddof=1) if len(col) > 1 else float('nan'):.3g} |"
+        )
+    md.append(
+        f"\nSuccess in {int(bracket[:, 4].sum())} of {len(bracket)} bracket fits. From one photo the same pair is refused as degenerate.\n"
+    )
+
+    md.append("## 3. Cost against scipy with finite differences\n")
+    md.append(
+        "Same scenes, sigma = 0.01, same start and the same log coordinates. `fit_lens` from one start (`starts=1`) and with its default 4 starts, "
+        "wall time of the whole call after a warm-up call (compilation excluded; includes input checks and the statistics). "
+        "scipy: `least_squares(method='trf', jac='2-point', xtol=ftol=gtol=1e-8)` on the jitted `jaxdof.render` (numpy in and out), its renders counted. "
+        "`fit_lens` costs per step one render and its Jacobian by forward mode (one JVP per free parameter).\n"
+    )
+    md.append(
+        "| scene | fit_lens 1 start (s) | fit_lens 4 starts (s) | LM steps | scipy (s) | scipy renders | scipy / fit_lens(1) | |scipy - ours| / stderr (N, d_f) |"
+    )
+    md.append("|---|---|---|---|---|---|---|---|")
+    for name in dict.fromkeys(t["scene"] for t in timing):
+        ts = [t for t in timing if t["scene"] == name]
+        m = lambda k, ts=ts: float(np.median([t[k] for t in ts]))  # noqa: E731
+        md.append(
+            f"| {name} | {m('ours1'):.3f} | {m('ours4'):.3f} | {m('steps'):g} | {m('scipy'):.3f} | {m('evals'):g} | {m('scipy') / m('ours1'):.2f} | {m('dN'):.2g}, {m('dD'):.2g} |"
+        )
+    speed = np.median([t["scipy"] / t["ours1"] for t in timing])
+    md.append(
+        f"\nMedian speed ratio scipy / fit_lens (one start): {speed:.2f}x over {len(timing)} fits.\n"
+    )
+
+    md.append("## Conclusions\n")
+    claims = conclusions(rows, bracket, timing, ratios, srat, speed)
+    md += [f"- {c}" for c in claims]
+    path = out / f"recover{suffix}.md"
+    path.write_text("\n".join(md) + "\n")
+    plot(rows, out / f"recover{suffix}.png")
+    print(f"wrote {path}")
+
+
+def conclusions(rows, bracket, timing, ratios, srat, speed):
+    claims = []
+    noise_free = [r for r in rows if r["sigma"] == 0]
+    worst = max(r["max_rel"].max() for r in noise_free)
+    assert all(r["success"] == 1.0 for r in noise_free), "a noise-free fit failed"
+    assert worst < 1e-4, worst
+    claims.append(
+        f"Noise-free, every fit from the wrong starts succeeded and recovered N, d_f and K to {worst:.1g} relative or better (float64)."
+    )
+    low = np.array([r["rmse"] / r["crb"] for r in rows if 0 < r["sigma"] <= 0.01])
+    high = np.array([r["rmse"] / r["crb"] for r in rows if r["sigma"] == 0.03])
+    claims.append(
+        f"RMSE / CRB for sigma <= 0.01: median {np.median(low):.2f}, range {low.min():.2f}-{low.max():.2f} "
+        f"(issue goal: within 1.3x); at sigma = 0.03: median {np.median(high):.2f}, up to {high.max():.2f}. "
+        "With 30 trials an RMSE is itself uncertain by about +-13 % (1 sigma), so single cells scatter "
+        "around 1 by that much; the median is the estimate of efficiency."
+    )
+    # The estimator is efficient where the noise is small: the median ratio is 1 within the
+    # sampling error of a median over the cells, and no cell is off by more than ~3 sampling sigmas.
+    assert 0.8 < np.median(low) < 1.2 and low.max() < 1.5, low
+    claims.append(
+        f"Reported standard error / observed spread: median {np.median(srat):.2f}, range "
+        f"{srat.min():.2f}-{srat.max():.2f} (the same +-13 % sampling error per cell)."
+    )
+    assert 0.85 < np.median(srat) < 1.15 and srat.max() < 1.6 and srat.min() > 1 / 1.6, srat
+    f_mean, f_se = bracket[:, 0].mean(), bracket[:, 2].mean()
+    n_mean, n_se = bracket[:, 1].mean(), bracket[:, 3].mean()
+    k = len(bracket)
+    claims.append(
+        f"A focus bracket (1.2 / 1.8 / 2.6 m) determines f and N apart, but weakly: at sigma = 0.01 the "
+        f"reported standard errors are {f_se * 1e3:.2g} mm on f = 50 mm ({f_se / F:.0%}) and {n_se:.2g} on N = 2 "
+        f"({n_se / N_TRUE:.0%}); the mean over {k} trials is f = {f_mean * 1e3:.1f} mm, N = {n_mean:.2f}. Only "
+        "the change of K across the bracket, K_t ~ 1/(d_f,t - f), carries f, and it is of order "
+        "f / d_f (a few %); a bracket focused closer (d_f of a few f) or EXIF for one field does far better."
+    )
+    # Unbiased within the sampling error of the mean of k trials.
+    assert abs(f_mean - F) < 3 * f_se / np.sqrt(k) + 1e-9 and abs(
+        n_mean - N_TRUE
+    ) < 3 * n_se / np.sqrt(k), (f_mean, n_mean)
+    assert bracket[:, 4].all(), "a bracket fit failed"
+    claims.append(
+        f"Against scipy's finite-difference least squares on the same jitted render, a one-start fit_lens call is {speed:.1f}x faster (median; "
+        f"{'meets' if speed >= 10 else 'does not meet'} the issue's 10x goal on this machine), and lands within "
+        f"{max(max(t['dN'], t['dD']) for t in timing):.2g} standard errors of scipy's answer."
+    )
+    return claims
+
+
+def plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(13, 4))
+    labels = ("N", "d_f (m)", "K (px)")
+    for j, ax in enumerate(axes):
+        for name in dict.fromkeys(r["scene"] for r in rows):
+            rs = [r for r in rows if r["scene"] == name and r["sigma"] > 0]
+            s = [r["sigma"] for r in rs]
+            (line,) = ax.loglog(s, [r["rmse"][j] for r in rs], "o-", label=f"{name} RMSE")
+            ax.loglog(
+                s, [r["crb"][j] for r in rs], "--", color=line.get_color(), label=f"{name} CRB"
+            )
+            if j < 2:
+                ax.loglog(s, [r["stderr"][j] for r in rs], "x", color=line.get_color())
+        ax.set_xlabel("noise sigma")
+        ax.set_title(f"{labels[j]}: RMSE (o), CRB (--), stderr (x)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    main()
