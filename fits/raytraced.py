@@ -528,7 +528,7 @@ def fit_plan():
     plan += [(n, a, d, "edge weight") for n in ("planes", "occluders") for a, d in CONFIGS]
     plan += [(n, a, d, "prefilter") for n in ("slant",) for a, d in CONFIGS if a == 0.03]
     plan += [(n, a, d, "footprint") for n in SCENES for a, d in CONFIGS]
-    plan += [(n, a, d, "edge + footprint") for n in ("planes", "occluders") for a, d in CONFIGS]
+    plan += [(n, a, d, "edge + footprint") for n in ("occluders",) for a, d in CONFIGS]
     return plan
 
 
@@ -571,6 +571,8 @@ def main(fixtures=False):
         "",
     ]
 
+    intro_end = len(L)
+    overall, overall_fp = {}, {}
     # --- depth conversion
     _, dist, _, _ = load_scene("slant")
     z = z_depth(dist)
@@ -596,6 +598,9 @@ def main(fixtures=False):
     t = emitter_table()
     ratio = t[:, 4] / t[:, 3]
     big, mid = t[:, 3] >= 2.5, (t[:, 3] >= 1) & (t[:, 3] < 2.5)
+    # The study's claims (asserted, so a re-run that breaks them fails loudly).
+    assert np.max(np.abs(z / z_plane - 1)) < 1e-5, "depth conversion"
+    assert np.max(np.abs(ratio[big] - 1)) < 0.03, "lens mapping vs blur discs"
     L += [
         "## Lens mapping checked on blur discs",
         "",
@@ -611,8 +616,10 @@ def main(fixtures=False):
         f"| 1 - 2.5 px | {mid.sum()} | {np.median(ratio[mid]):.4f} | {ratio[mid][np.argmax(np.abs(ratio[mid] - 1))]:.4f} |",
         "",
         "Seed-to-seed scatter of the measured radius is <= 1.7% (two renders of two lenses). "
-        "A few emitters show a reproducible excess of about 0.27 px² in r² (3% at r = 2 px), "
-        "independent of the lens; not explained, it matters only for discs under ~2.5 px.",
+        "Some emitters show a seed-independent error of up to ~0.3 px² in r² (3% at r = 2 px), of "
+        "either sign and similar for every lens: likely the pixel-sampled second moment of the "
+        "1 px disk's pinhole image, which depends on its sub-pixel position (aliasing). It "
+        "matters only for discs under ~2.5 px.",
         "",
     ]
 
@@ -634,7 +641,7 @@ def main(fixtures=False):
         + " | render s |"
     )
     L += [hdr, "|" + "---|" * (hdr.count("|") - 1)]
-    curves = {}
+    curves, noises = {}, {}
     for name in SCENES:
         pin, dist, thin, _ = load_scene(name)
         z = z_depth(dist)
@@ -652,6 +659,8 @@ def main(fixtures=False):
             secs = time.perf_counter() - t0
             model_fp = np.asarray(jaxdof.coc_filter(pin, footprint_radius(r), max_radius=mr))
             m3 = m[..., None].repeat(3, -1)
+            overall.setdefault(name, []).append(psnr(model, tgt, m3))
+            overall_fp.setdefault(name, []).append(psnr(model_fp, tgt, m3))
             row = [f"{psnr(model, tgt, m3):.2f}", f"{psnr(model_fp, tgt, m3):.2f}"]
             curve = []
             for k in range(len(EDGE_BINS) - 1):
@@ -665,52 +674,137 @@ def main(fixtures=False):
                 + " | ".join(row)
                 + f" | {secs:.3f} |"
             )
-        L.append(f"| {name} noise floor | | | | {noise:.1f} | | | | | | | | |")
-    L.append("")
+        noises[name] = noise
+    L += [
+        "",
+        "Monte Carlo noise floor of one thin-lens render (PSNR of its noise alone): "
+        + ", ".join(f"{k} {v:.1f} dB" for k, v in noises.items())
+        + ".",
+        "",
+    ]
 
     # --- fits
     fits = run_fits()
+    f_len = 0.05  # lens_from_raytracer's default focal length
+
+    def cell(f, d):
+        # se(K)/K <= se(N)/N + se(d_f)/(d_f - f): an upper bound (the N-d_f correlation is not kept)
+        se_k = f["K_se"] / f["K"] + f["d_f_se"] / (f["d_f"] - f_len)
+        ok = abs(f["d_f_err"]) < 0.02 and abs(f["K_err"]) < 0.05
+        return (
+            f"{f['d_f_err']:+.1%}±{f['d_f_se'] / d:.1%}, {f['K_err']:+.1%}±{se_k:.1%}"
+            + (" ✓" if ok else " ✗")
+            + ("" if f["success"] else " (not converged)")
+        )
+
+    treatments = list(TREATMENTS)
     L += [
         "## Lens recovered by `fit_lens` from the ray-traced targets",
         "",
-        "Free: focus distance and f-number (focal length and pixel pitch fixed at the mapping's "
-        "values); start 15% far in d_f and 30% off in N; one start (`starts=1`); float64; "
-        "weight = interior mask (1.6x the start's largest circle + 2 px), times the edge weight "
-        "where listed. Errors are fitted/true - 1, ± the reported standard error (relative). "
-        "Goal: d_f within 2%, K within 5%.",
+        "Free: focus distance and f-number (focal length 50 mm and pixel pitch fixed at the "
+        "mapping's values, so the fit recovers `d_f` and the blur scale `K`); start 15% far in "
+        "`d_f` and 30% off in `N`; one start (`starts=1`); float64; weight = interior mask (1.6x "
+        "the start's largest circle + 2 px, the frame's border sees content the pinhole image "
+        "lacks) times the treatment's weight. Each cell: `d_f` error ± its standard error, `K` "
+        "error ± an upper bound of its standard error (fitted/true - 1; the standard errors are "
+        "`fit_lens`'s Gauss-Newton errors for white noise, far below the systematic errors); ✓ "
+        "when `d_f` is within 2% and `K` within 5%. Treatments: **edge weight** "
+        "`edge_weight(z, width=r0 + 1)` with `r0` the start's largest circle; **footprint** the "
+        "forward model `coc_filter(image, footprint_radius(coc_radius(z, lens)))` (swapped into "
+        "`fit_lens` for this study); **prefilter** `pixel_prefilter(image)` before the fit.",
         "",
-        "| scene | A | d_f | K px | treatment | d_f error | K error | ok | converged | s |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | A m | d_f m | K px | " + " | ".join(treatments) + " |",
+        "|---|---|---|---|" + "---|" * len(treatments),
     ]
-    summary = {}
-    for (name, a, d, tr), f in fits.items():
-        ok = abs(f["d_f_err"]) < 0.02 and abs(f["K_err"]) < 0.05
-        summary.setdefault(tr, []).append((name, ok, abs(f["d_f_err"]), abs(f["K_err"])))
-        L.append(
-            f"| {name} | {a} | {d} | {f['K_true']:.2f} | {tr} | "
-            f"{fmt_pct(f['d_f_err'], f['d_f_se'] / d)} | {fmt_pct(f['K_err'], f['K_se'] / f['K_true'])} | "
-            f"{'yes' if ok else 'NO'} | {f['success']} | {f['seconds']:.0f} |"
-        )
+    summary, times = {}, []
+    for name in SCENES:
+        for a, d in CONFIGS:
+            row = []
+            for tr in treatments:
+                f = fits.get((name, a, d, tr))
+                if f is None:
+                    row.append("")
+                    continue
+                row.append(cell(f, d))
+                times.append(f["seconds"])
+                ok = abs(f["d_f_err"]) < 0.02 and abs(f["K_err"]) < 0.05
+                summary.setdefault((tr, name), []).append((ok, abs(f["d_f_err"]), abs(f["K_err"])))
+            L.append(f"| {name} | {a} | {d} | {a * F_PX / d:.2f} | " + " | ".join(row) + " |")
     L += [
         "",
-        "| treatment | fits within goal | median abs d_f error | median abs K error |",
-        "|---|---|---|---|",
+        f"Fit wall time: median {np.median(times):.0f} s, range {min(times):.0f}-{max(times):.0f} s "
+        "(128x128x3 float64; the long ones include compiling for a new window size).",
+        "",
+        "| treatment | scene | fits within goal | median abs d_f error | median abs K error |",
+        "|---|---|---|---|---|",
     ]
-    for tr, rows in summary.items():
+    for (tr, name), rows in summary.items():
         L.append(
-            f"| {tr} | {sum(r[1] for r in rows)}/{len(rows)} | {np.median([r[2] for r in rows]):.2%} | "
-            f"{np.median([r[3] for r in rows]):.2%} |"
+            f"| {tr} | {name} | {sum(r[0] for r in rows)}/{len(rows)} | "
+            f"{np.median([r[1] for r in rows]):.2%} | {np.median([r[2] for r in rows]):.2%} |"
         )
     L.append("")
+
+    # --- the headline numbers, computed here and put first
+    def med(vals):
+        vals = [v for v in vals if np.isfinite(v)]
+        return float(np.median(vals)) if vals else float("nan")
+
+    head = ["## Summary", ""]
+    for name in SCENES:
+        c = np.array([curves[(name, a, d)] for a, d in CONFIGS])
+        edges = (
+            f"{med(c[:, 0]):.1f} dB within 1 px of a depth edge, {med(c[:, 4]):.1f} dB at 8-16 px, "
+            f"{med(c[:, 5]):.1f} dB beyond 16 px"
+            if np.isfinite(c[:, 0]).any()
+            else "no depth edges"
+        )
+        head.append(
+            f"- **{name}**: PSNR of `render` vs Mitsuba, median over the 6 lenses: "
+            f"{med(overall[name]):.1f} dB overall ({med(overall_fp[name]):.1f} dB with "
+            f"`footprint_radius`); {edges} (noise floor {noises[name]:.1f} dB)."
+        )
+    for tr in treatments:
+        rows = [r for (t, _), rs in summary.items() if t == tr for r in rs]
+        if rows:
+            head.append(
+                f"- fit, **{tr}**: {sum(r[0] for r in rows)}/{len(rows)} lenses within the goal "
+                f"(median |d_f error| {med([r[1] for r in rows]):.2%}, median |K error| "
+                f"{med([r[2] for r in rows]):.2%})."
+            )
+    head += [
+        "",
+        "How to read the tables below:",
+        "",
+        "- The mapping and the depth conversion are verified (sections *Depth* and *Lens mapping*).",
+        "- Away from depth edges `render` is within a few dB of the Monte Carlo floor; the error "
+        "sits within about one circle of confusion of occlusion edges, where a pinhole image with "
+        "one depth per pixel cannot know what a real aperture sees (background hidden behind a "
+        "sharp foreground edge; a defocused foreground edge that is partly transparent). The "
+        "edge weight does not change the rendered image: that PSNR gap stays as it is. No "
+        "occlusion-aware filter was tried in this round.",
+        "- Fits: occlusion edges bias the plain fit, most on **occluders**. `edge_weight` "
+        "removes most of the focus-distance bias there and changes little on **planes** (two "
+        "edges); on **slant** it is all ones, i.e. off.",
+        "- The plain model also under-estimates `K` by a few percent (more for small `K`), which is "
+        "the extra pixel footprint of item 6. `footprint_radius` (variance-matched radius) removes "
+        "it on planes and, with the edge weight, on occluders, but over-corrects on the "
+        "slanted plane, whose far half holds texture near the Nyquist frequency where the "
+        "one-extra-box argument does not hold. It is therefore opt-in, not a default.",
+        "- The smallest blur scale (K = 1.76 px, circles of 0-2 px) is not recovered by any "
+        "treatment from a single start; `pixel_prefilter` made fits worse and is kept private.",
+        "",
+    ]
+    L[intro_end:intro_end] = head
     RESULTS.mkdir(exist_ok=True)
-    (RESULTS / "raytraced_tables.md").write_text("\n".join(L) + "\n")
-    figure(curves)
+    (RESULTS / "raytraced.md").write_text("\n".join(L) + "\n")
+    figure(curves, overall, overall_fp)
     if fixtures:
         write_fixtures()
     print("\n".join(L))
 
 
-def figure(curves):
+def figure(curves, overall, overall_fp):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -741,11 +835,21 @@ def figure(curves):
                 plt.colorbar(im, ax=ax, fraction=0.046)
         ax = axs[k, 4]
         centers = [0.5, 1.5, 3, 6, 12, 24]
+        if name == "slant":  # no depth edge: show the footprint correction instead
+            x = np.arange(len(CONFIGS))
+            ax.bar(x - 0.2, overall[name], 0.4, label="render")
+            ax.bar(x + 0.2, overall_fp[name], 0.4, label="footprint_radius")
+            ax.set_xticks(x, [f"A={aa}\nd_f={dd}" for aa, dd in CONFIGS], fontsize=6)
+            ax.set_ylim(30, 45)
+            ax.set_ylabel("PSNR (dB)")
+            ax.set_title("slant (no depth edge): PSNR", fontsize=9)
+            ax.legend(fontsize=6)
+            continue
         for (n, aa, dd), c in curves.items():
             if n == name:
                 ax.plot(centers, c, "o-", label=f"A={aa} d_f={dd}", ms=3)
         ax.set_xscale("log")
-        ax.set_xlabel("distance to nearest depth edge (px)")
+        ax.set_xlabel("distance to depth edge (px)")
         ax.set_ylabel("PSNR (dB)")
         ax.set_title(f"{name}: PSNR vs edge distance", fontsize=9)
         ax.legend(fontsize=6)
