@@ -171,8 +171,12 @@ class _Model(eqx.Module):
         a lens that the render's run-time checks would refuse.
         """
         _, _, targets, sqrt_w, _ = args
+        # The solver may carry `y` in a wider dtype than the data (see `_solve`): the model runs
+        # in the data's precision and the residuals are handed back in the solver's dtype.
+        y_dtype = y.dtype
+        y = y.astype(targets.dtype)
         r = ((self.predict(y, args) - targets) * sqrt_w).reshape(-1)
-        return jnp.where(jnp.all(jnp.isfinite(y)), r, jnp.nan)
+        return jnp.where(jnp.all(jnp.isfinite(y)), r, jnp.nan).astype(y_dtype)
 
 
 class _Spec:
@@ -359,9 +363,15 @@ def _statistics(residual, jac, g, theta, n, used: tuple[int, ...]) -> dict[str, 
 
 def _solve(model: _Model, solver, y0, args, max_steps: int):
     """One least-squares solve from `y0`: solution, status, steps, residual and slot values. Pure."""
-    sol = optx.least_squares(model, solver, y0, args, max_steps=max_steps, throw=False)
-    y = sol.value
-    residual = model(y, args)
+    # optimistix 0.1.0's Levenberg-Marquardt builds its damping term in JAX's default float dtype,
+    # so float32 parameters under `jax_enable_x64` fail its structure check ("Vector and operator
+    # structures do not match"). Carrying `y` in the default dtype and casting it to the data's
+    # dtype inside the residual avoids that; the model itself runs in the data's precision.
+    sol = optx.least_squares(
+        model, solver, y0.astype(jnp.result_type(float)), args, max_steps=max_steps, throw=False
+    )
+    y = sol.value.astype(y0.dtype)
+    residual = model(y, args)  # in the data's dtype again, since `y` is
     ok = sol.result == optx.RESULTS.successful
     maxed = sol.result == optx.RESULTS.nonlinear_max_steps_reached
     status = jnp.where(ok, CONVERGED, jnp.where(maxed, MAX_STEPS, SOLVER_FAILED))
