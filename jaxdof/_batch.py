@@ -26,7 +26,7 @@ from ._render import render
 BATCH_AXIS = "batch"
 
 
-def batch_mesh(devices: Any = None) -> Mesh:
+def batch_mesh(*, devices: Any = None) -> Mesh:
     """A 1-D `Mesh` over `devices` (default: all of `jax.devices()`), its axis named `"batch"`."""
     devices = jax.devices() if devices is None else list(devices)
     if not devices:
