@@ -140,7 +140,7 @@ def _error_if_invalid(depth: Array, lens: ThinLens) -> Array:
 
     `equinox.error_if` raises when the compiled computation runs (`EquinoxRuntimeError` under
     `equinox.filter_jit`; `jax.jit` re-raises it as a JAX runtime error with the same message): under `vmap` if any batch element is invalid, under `grad` in the forward
-    pass. With `EQX_ON_ERROR=nan` the depth becomes NaN instead, and the output NaN. The check
+    pass. The check
     is a comparison and an `any` over the depth map plus a `lax.cond`: negligible beside a filter.
     The returned array must be used, or the check is dead code and removed. Concrete inputs are
     returned as they are (`_check_depth` has already inspected them).

@@ -46,8 +46,8 @@ def render(
     `equinox.error_if`: the compiled computation raises an error with the same message when it
     runs (`EquinoxRuntimeError` under `equinox.filter_jit`, which also shows where; under
     `jax.jit` JAX re-raises it as its own runtime error), under `vmap` if any batch element is
-    invalid, under `grad` in the forward pass. `EQX_ON_ERROR=nan` makes it return NaN instead, and
-    `EQX_ON_ERROR=off` removes the check. Its cost is a comparison and a reduction over the
+    invalid, under `grad` in the forward pass. `EQX_ON_ERROR=off` removes the check (and the
+    guarantee). Its cost is a comparison and a reduction over the
     depth map, negligible beside the filter (measured in `fits/stability.py`).
     """
     depth = jnp.asarray(depth)
