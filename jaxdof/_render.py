@@ -46,9 +46,10 @@ def render(
     `equinox.error_if`: the compiled computation raises an error with the same message when it
     runs (`EquinoxRuntimeError` under `equinox.filter_jit`, which also shows where; under
     `jax.jit` JAX re-raises it as its own runtime error), under `vmap` if any batch element is
-    invalid, under `grad` in the forward pass. `EQX_ON_ERROR=off` removes the check (and the
-    guarantee). Its cost is a comparison and a reduction over the
-    depth map, negligible beside the filter (measured in `fits/stability.py`).
+    invalid, under `grad` in the forward pass. With `EQX_ON_ERROR=nan` the output is NaN (equinox
+    makes the checked array NaN); with `off` there is no check, and a NaN radius still poisons
+    every output pixel its light reaches. The check is a comparison and a reduction over the
+    depth map (one pass; the filter makes one per tap).
     """
     depth = jnp.asarray(depth)
     image = jnp.asarray(image)

@@ -303,3 +303,24 @@ def test_invalid_radius(method, bad):
     f = jax.jit(lambda r: coc_filter(jnp.ones((3, 4)), r, method=method, max_radius=2.0, **kw))
     with pytest.raises(RUNTIME, match="radius must be >= 0"):
         jax.block_until_ready(f(jnp.asarray(radius)))
+
+
+def test_nan_radius_poisons_rather_than_passing_for_sharp():
+    """Under jit with the run-time check switched off, a NaN radius must not act as r <= 1/2."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(
+        """
+        import jax, jax.numpy as jnp, numpy as np, jaxdof
+        r = jnp.full((5, 6), 1.0).at[2, 3].set(jnp.nan)
+        out = jax.jit(lambda i, r: jaxdof.coc_filter(i, r, max_radius=2.0))(jnp.ones((5, 6)), r)
+        bad = np.isnan(np.asarray(out))
+        assert bad[2, 3] and bad[1, 2] and not bad[0, 0], bad
+        print("ok")
+        """
+    )
+    env = {**__import__("os").environ, "EQX_ON_ERROR": "off"}
+    res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert res.returncode == 0 and "ok" in res.stdout, res.stderr[-2000:]

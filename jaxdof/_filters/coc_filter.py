@@ -231,6 +231,11 @@ def coc_filter(
     static_radius = np.asarray(radius) if is_concrete(radius) else None
     image, radius, was_2d = check_image_and_radius(image, radius)
     max_radius = check_max_radius(max_radius, radius)
+    if static_radius is None:
+        # A NaN radius (possible under jit with EQX_ON_ERROR=nan or off) must not pass for a
+        # sharp pixel (NaN fails `r > 1/2`, the identity test): poison its light instead, so every
+        # output pixel it reaches is NaN.
+        image = jnp.where(jnp.isnan(radius)[..., None], jnp.nan, image)
     radius = jnp.minimum(radius, max_radius)
     if static_radius is not None:
         static_radius = np.minimum(static_radius, max_radius)
