@@ -23,6 +23,7 @@ def render(
     blades: int | None = None,
     rotation: float | None = None,
     layers: int | None = None,
+    fill: bool | None = None,
 ) -> Image:
     """Render the depth of field of `lens` from an all-in-focus image and its depth map.
 
@@ -34,7 +35,8 @@ def render(
     - `depth`: z-depth along the optical axis (m), `(H, W)`, `> lens.focal_length`; `inf` allowed.
     - `lens`: the `ThinLens`.
     - `method`, `normalize`, and the method's knobs (`samples`, `key`, `pattern`, `blades`,
-      `rotation`, `layers`): as in `coc_filter`.
+      `rotation`, `layers`, `fill`): as in `coc_filter`. `method="occlusion"` (opt-in) orders the
+      layers by `depth`, which `render` passes to the filter itself.
     - `max_radius`: window size in pixels. `None` (the default) uses the smallest window that covers
       the largest circle in the scene, which needs concrete inputs; under `jit` pass a number.
 
@@ -70,5 +72,7 @@ def render(
         max_radius=max_radius,
         normalize=normalize,
         layers=layers,
+        depth=depth if method == "occlusion" else None,
+        fill=fill,
         **knobs,
     )

@@ -10,13 +10,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._custom_types import Image, ImageLike, RadiusLike
+from .._custom_types import DepthLike, Image, ImageLike, RadiusLike
 from .aperture import PATTERNS, RANDOM_PATTERNS, aperture_filter
 from .auto import choose_method, distinct_levels
 from .common import check_image_and_radius, check_max_radius, is_concrete
 from .hard import hard_filter
 from .jitter import jitter_filter
 from .layered import assign_numpy, layered_filter
+from .occlusion import occlusion_filter
 from .soft import soft_filter
 from .soft_polygon import soft_polygon_filter
 from .supersample import supersample_filter
@@ -24,7 +25,7 @@ from .supersample import supersample_filter
 
 logger = logging.getLogger("jaxdof")
 
-METHODS = ("soft", "hard", "supersample", "jitter", "aperture", "layered", "auto")
+METHODS = ("soft", "hard", "supersample", "jitter", "aperture", "layered", "auto", "occlusion")
 
 #: The keyword knobs each method uses; any other knob given to it is a `ValueError`.
 KNOBS: dict[str, tuple[str, ...]] = {
@@ -35,6 +36,7 @@ KNOBS: dict[str, tuple[str, ...]] = {
     "aperture": ("samples", "key", "pattern", "blades", "rotation"),
     "layered": ("layers",),
     "auto": (),
+    "occlusion": ("layers", "depth", "fill"),
 }
 
 #: Defaults of the knobs left at `None`.
@@ -44,6 +46,8 @@ DEFAULTS = {
     ("aperture", "samples"): 64,
     ("aperture", "pattern"): "stratified",
     ("layered", "layers"): 8,
+    ("occlusion", "layers"): 4,
+    ("occlusion", "fill"): True,
 }
 
 #: Whether `d(out)/d(radius)` is the true derivative of the method's own forward model, so that a
@@ -59,6 +63,7 @@ DIFFERENTIABLE_IN_RADIUS: dict[str, bool] = {
     "aperture": True,
     "layered": False,
     "auto": True,
+    "occlusion": True,
 }
 
 
@@ -110,6 +115,9 @@ def _check_knobs(method: str, knobs: dict) -> dict:
                     "pass blades=<int >= 3> for a polygonal diaphragm, or drop rotation"
                 )
             out["rotation"] = rot
+    if method == "occlusion":
+        if not isinstance(out["fill"], bool):
+            raise ValueError(f"fill must be a Python bool, got {out['fill']!r}")
     if "pattern" in out and out["pattern"] not in PATTERNS:
         raise ValueError(f"pattern={out['pattern']!r} is not one of {PATTERNS}")
     needs_key = method == "jitter" or (method == "aperture" and out["pattern"] in RANDOM_PATTERNS)
@@ -158,6 +166,8 @@ def coc_filter(
     blades: int | None = None,
     rotation: float | None = None,
     layers: int | None = None,
+    depth: DepthLike | None = None,
+    fill: bool | None = None,
 ) -> Image:
     r"""Spread every pixel's light uniformly over its circle of confusion (a scatter, as a gather).
 
@@ -192,6 +202,13 @@ def coc_filter(
         - `"auto"`: one convolution, the layered filter or the soft gather, whichever the concrete
           radius map needs (`choose_method`); always the soft filter's result. Falls back to
           `"soft"` when the radius map is traced (under `jit`/`grad` in `radius`).
+        - `"occlusion"` (opt-in): the pixels are split into at most `layers` (default 4) layers
+          at relative gaps of more than 3% in `depth` (`(H, W)`, positive z-depth, e.g. metres;
+          `jaxdof.render` passes its own; without it the frame is one layer); each layer (with
+          `fill=True`, the default, extended behind nearer layers by its nearest visible colour)
+          is blurred by the soft scatter and the layers are composited back to front with `over`
+          (`jaxdof/_filters/occlusion.py`). Exactly `"soft"` when `depth` has no such gap.
+          Differentiable in `image` and `radius`, not in `depth`.
 
       `supersample` and `jitter` converge to `soft` as `samples -> infinity`: the analytic overlap is
       their limit.
@@ -201,8 +218,8 @@ def coc_filter(
       the scene needs. Under `jit` it must be given.
     - `normalize`: divide by the same filter applied to an image of ones, so that pixels near the
       border, which lose light to outside the frame, keep their brightness.
-    - `samples`, `key`, `pattern`, `blades`, `rotation`, `layers`: the methods' knobs (keyword
-      only; a knob given to a method that does not use it is a `ValueError`). `blades` (int `>= 3`)
+    - `samples`, `key`, `pattern`, `blades`, `rotation`, `layers`, `depth`, `fill`: the methods'
+      knobs (keyword only; a knob given to a method that does not use it is a `ValueError`). `blades` (int `>= 3`)
       makes the diaphragm the regular polygon inscribed in the circle of confusion, turned by
       `rotation` radians (for `"soft"`, `"supersample"` and `"aperture"`).
 
@@ -225,6 +242,8 @@ def coc_filter(
             blades=blades,
             rotation=rotation,
             layers=layers,
+            depth=depth,
+            fill=fill,
         ),
     )
     # a concrete map is inspected in numpy before anything is staged into a surrounding jit
@@ -279,4 +298,6 @@ def _dispatch(method: str, image, radius, max_radius: float, knobs: dict):
         return aperture_filter(image, radius, max_radius=max_radius, **knobs)
     if method == "layered":
         return layered_filter(image, radius, max_radius=max_radius, **knobs)
+    if method == "occlusion":
+        return occlusion_filter(image, radius, max_radius=max_radius, **knobs)
     raise AssertionError(method)
