@@ -1,0 +1,215 @@
+r"""The exact soft scatter at a cost linear in the blur radius: row spans plus boundary taps.
+
+The soft filter (`jaxdof/_filters/soft.py`) computes
+
+$$\text{out}[p] = \sum_q \text{image}[q]\, \frac{A(p - q, r_q)}{\pi r_q^2}, \qquad
+  A(o, r) = |\,\text{disc}(0, r) \cap \text{pixel}(o)\,|,$$
+
+as a gather over every offset of the window: about `pi R^2` exact areas per pixel. But almost all
+of a large disc's pixels are *fully* covered, `A = 1`, and only the `O(r)` pixels its circle
+crosses need the analytic area. This module splits each source's footprint accordingly and
+computes the same sum (to rounding) in scatter form:
+
+- **Interior: row spans.** Pixel `(j, k)` (column, row offset) is fully covered iff its far
+  corner is inside, `(|j| + 1/2)^2 + (|k| + 1/2)^2 <= r^2`; in row `k` that is the span
+  `|j| <= a_k(r)`. A source adds `v_q = image[q] / (pi r_q^2)` to that span by two marks in a
+  difference array, `D[q_y + k, q_x - a_k] += v_q` and `D[q_y + k, q_x + a_k + 1] -= v_q`, and one
+  cumulative sum along `x` at the end turns the marks into spans: `O(1)` per source per row.
+- **Boundary: the partially covered pixels, split by the diagonals.** A pixel with
+  `|k| <= |j|` (the left and right "sides" of the disc, where the circle is steeper than 45
+  degrees) is taken from its row: in row `k` these are `j = ±(j_0 + t)`,
+  `j_0 = max(a_k + 1, |k|)`, `t < J`. A pixel with `|k| > |j|` (the top and bottom "caps") is
+  taken from its column the same way (the disc is symmetric under transposition), starting at
+  `max(a_j + 1, |j| + 1)`. Each pixel of the footprint lies in exactly one of {row span, side,
+  cap}, so nothing is counted twice or missed. Because the side pixels of a row lie where the
+  circle is at least as steep as the diagonal, the circle crosses at most `J = 2` partial pixels
+  there per side (checked exhaustively in the tests for every radius on a fine grid up to 400 px);
+  taps past the circle have area 0 and cost only their slot. Each tap's weight is the exact
+  `tap_weight` of the soft filter (same float32-stable area formula, same analytic derivative), and
+  is added directly (a scatter of `J` contiguous pixels).
+- **Consistency at the seams.** "Fully covered" is decided by one predicate, symmetric in `j`
+  and `k` and exact in floating point (`(j + 1/2)^2` and their sum are exact for offsets below
+  ~2000 px), so the row view of the interior and the column view of the caps always agree on
+  which pixels are interior. Which side of the predicate a nearly fully covered pixel falls on
+  does not matter: its exact area is 1 up to rounding either way.
+- **Sharp pixels.** Sources with `r <= 1/2` are the identity, as in the soft filter.
+
+**Derivatives.** The span `a_k(r)` is piecewise constant in `r`; it switches exactly where a pixel
+becomes fully covered, where the pixel's weight is `1 / (pi r^2)` from both sides, so the output is
+continuous in `r` and its derivative is that of `v_q` plus that of the boundary taps (analytic,
+from `tap_weight`), correct everywhere except on those switching radii (a measure-zero set).
+Everything is `lax.scatter_add`, elementwise arithmetic and one `cumsum`: forward and reverse
+mode, `jit`, `vmap`.
+
+**Cost model.** With `R = max_radius`, one `lax.scan` step per row offset `m = 0 .. ~R` does,
+for every source at once: the span `a_m` (a square root), 4 boundary weights (2 side, 2 cap
+taps), and scatters of 4 span marks, 4 side windows and 4 cap windows (`J = 2` pixels x C channels
+each; rows `±m`, both sides). The steps past the diagonal (`m > ~R / sqrt(2)`) only mark spans.
+So about `12 R` scattered updates and `3 R` exact areas per source, against the dense gather's
+`pi R^2` taps: linear in `R`. The price is the scatter's per-update overhead (indices formed at
+run time, a few ns each on a CPU), which the dense gather, shifting whole images by static
+offsets, does not pay; hence the crossover `SPANS_MIN_RADIUS` below.
+
+**Precision.** The running sum along a row adds and removes each span's value once: its rounding
+error is a few float32 units of the row's running interior value per pixel crossed, so a long
+row (thousands of pixels) at large radius loses a little more than the dense gather; the tests
+check float32 against the float64 dense result at R = 40.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, Float
+
+from .common import window_half_width
+from .soft import soft_filter, tap_weight
+
+
+#: Partial pixels per row (side) or column (cap) half beyond the span: 2 always suffices (see the
+#: module docstring; `tests/test_spans.py::test_two_taps_cover_the_boundary` checks it).
+TAPS = 2
+
+#: `coc_filter(method="soft")` uses this path when `max_radius >= SPANS_MIN_RADIUS`, the dense
+#: gather below it. Measured crossover (CPU, 256^2 RGB float32, forward and fwd+grad, see
+#: `fits/results/speed.md`, `python fits/bench_speed.py --spans-only`): see the value's comment.
+SPANS_MIN_RADIUS = 16.0
+
+PATHS = ("auto", "dense", "spans")
+
+
+def exact_soft_filter(
+    image: Float[Array, "h w c"],
+    radius: Float[Array, "h w"],
+    *,
+    max_radius: float,
+    path: str = "auto",
+) -> Float[Array, "h w c"]:
+    """The exact soft scatter by the dense gather or by row spans, whichever is faster.
+
+    `path="auto"` picks spans when `max_radius >= SPANS_MIN_RADIUS`; `"dense"` and `"spans"` force
+    one (the tests and benchmarks compare them). Both give the same numbers up to rounding.
+    """
+    if path not in PATHS:
+        raise ValueError(f"{path=} is not one of {PATHS}")
+    if path == "auto":
+        path = "spans" if max_radius >= SPANS_MIN_RADIUS else "dense"
+    if path == "dense":
+        return soft_filter(image, radius, max_radius=max_radius)
+    return spans_filter(image, radius, max_radius=max_radius)
+
+
+def spans_filter(
+    image: Float[Array, "h w c"], radius: Float[Array, "h w"], *, max_radius: float
+) -> Float[Array, "h w c"]:
+    """The soft filter's exact scatter by row spans and boundary taps (module docstring).
+
+    Same contract as `jaxdof._filters.soft.soft_filter`: `image` (H, W, C), `radius` (H, W) in
+    pixels, already clamped to `max_radius` (static); radii `<= 1/2` are the identity.
+    """
+    h, w, c = image.shape
+    dtype = image.dtype
+    wh = window_half_width(max_radius)
+    if wh == 0:  # every disc fits inside its own pixel
+        return image
+    pad = wh + TAPS  # every mark and tap lands inside the padded buffers
+    hp, wp = h + 2 * pad, w + 2 * pad + 1
+
+    big = radius > 0.5
+    rs = jnp.where(big, radius, 1)
+    v = image * jnp.where(big, 1 / (math.pi * rs * rs), 0)[..., None]
+    sharp = jnp.where(big[..., None], jnp.zeros((), dtype), image)  # the identity part
+    # The integer geometry depends on r only through comparisons: no gradient flows through it.
+    rr = lax.stop_gradient(rs * rs)
+    # Buffers are flat (padded pixels, C): one index per update, pixel (y, x) at y * wp + x.
+    rows = (jnp.arange(h, dtype=jnp.int32) + pad) * wp
+    base = rows[:, None] + (jnp.arange(w, dtype=jnp.int32) + pad)[None, :]
+    skip = 2 * hp * wp  # an index past the end: the update is dropped
+    half = jnp.asarray(0.5, dtype)
+    zero = jnp.zeros((), dtype)
+    one = jnp.ones((), dtype)
+    two = jnp.asarray(2, dtype)
+    nothing = jnp.zeros_like(radius)
+
+    def full(jf, kk):
+        """Pixel (j, k), `j, k >= 0`, is fully covered; `kk = (k + 1/2)^2`. Exact, symmetric."""
+        return (jf + half) * (jf + half) + kk <= rr
+
+    def span(mf):
+        """`a_m`: the largest `j` with pixel (j, m) fully covered, -1 if none; float (H, W)."""
+        kk = (mf + half) * (mf + half)
+        a = jnp.floor(jnp.sqrt(jnp.maximum(rr - kk, zero)) - half)
+        # the square root's rounding, corrected by the exact predicate
+        a = jnp.where(full(a + 1, kk), a + 1, a)
+        a = jnp.where((a >= 0) & ~full(a, kk), a - 1, a)
+        return jnp.minimum(jnp.where(big, a, -one), jnp.asarray(wh, dtype))
+
+    def weight(jf, kf):
+        """Exact normalised weight of pixel (j, k) (float maps, `j, k >= 0`), by `tap_weight`."""
+        ax, ay = jnp.maximum(jf - half, zero), jnp.maximum(kf - half, zero)
+        mult = jnp.where(jf == 0, two, one) * jnp.where(kf == 0, two, one)
+        return tap_weight(ax, jf + half, ay, kf + half, mult, nothing, radius)
+
+    def add(buf, idx, upd):
+        # Out-of-range indices are dropped: that is how a duplicate (row -0, column -0, the
+        # centre pixel on the left side) is skipped. Every other index is inside the padding.
+        return buf.at[idx].add(upd, mode="drop")
+
+    def spans_step(carry, m):
+        """Row spans of rows +m and -m (row 0 once): two marks per row."""
+        boundary, marks = carry
+        a = span(m.astype(dtype))
+        ai = a.astype(jnp.int32)
+        val = v * (a >= 0).astype(dtype)[..., None]
+        twin = jnp.where(m == 0, skip, 0)  # row -0 is row +0: send it out of the buffer
+        for row in (base + m * wp, base - m * wp + twin):
+            marks = add(marks, row - ai, val)
+            marks = add(marks, row + ai + 1, -val)
+        return (boundary, marks), a
+
+    def full_step(carry, m):
+        """Spans, then the partial pixels of rows +-m (sides) and columns +-m (caps)."""
+        (boundary, marks), a = spans_step(carry, m)
+        mf = m.astype(dtype)
+        mm = jnp.full_like(a, mf)
+        twin = jnp.where(m == 0, skip, 0)
+        j0 = jnp.maximum(a + 1, mf)  # sides: j = +-(j0 + t), t < TAPS, in rows +-m
+        k0 = jnp.maximum(a + 1, mf + 1)  # caps: k = +-(k0 + t), in columns +-m
+        for t in range(TAPS):
+            j = j0 + t
+            ji = j.astype(jnp.int32)
+            side = image * weight(j, mm)[..., None]
+            centre = jnp.where(ji == 0, skip, 0)  # (0, 0) is on the right side only
+            for row in (base + m * wp, base - m * wp + twin):
+                boundary = add(boundary, row + ji, side)
+                boundary = add(boundary, row - ji + centre, side)
+            k = k0 + t
+            ki = k.astype(jnp.int32) * wp
+            cap = image * weight(mm, k)[..., None]
+            for col in (base + m, base - m + twin):  # column -0 is column +0
+                boundary = add(boundary, col + ki, cap)
+                boundary = add(boundary, col - ki, cap)
+        return (boundary, marks), None
+
+    def scan(step, carry, lo, hi):
+        if hi < lo:
+            return carry
+        body = jax.checkpoint(lambda cr, m: (step(cr, m)[0], None), prevent_cse=False)
+        return lax.scan(body, carry, jnp.arange(lo, hi + 1, dtype=jnp.int32))[0]
+
+    # Rows past the diagonal hold no side pixels and their columns no cap pixels: the pixel
+    # (m, m) is touched only while 2 (m - 1/2)^2 < r^2, a cap pixel (m, m + 1) only while
+    # (m - 1/2)^2 + (m + 1/2)^2 < r^2. Past it, only spans.
+    diag = min(wh, math.ceil(max_radius / math.sqrt(2) + 0.5) - 1)
+    carry = (jnp.zeros((hp * wp, c), dtype), jnp.zeros((hp * wp, c), dtype))
+    carry = scan(full_step, carry, 0, diag)
+    carry = scan(spans_step, carry, diag + 1, wh)
+    boundary, marks = (b.reshape(hp, wp, c) for b in carry)
+    out = boundary + jnp.cumsum(marks, axis=1)
+    return out[pad : pad + h, pad : pad + w] + sharp
+
+
+__all__ = ["SPANS_MIN_RADIUS", "exact_soft_filter", "spans_filter"]
