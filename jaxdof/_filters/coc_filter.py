@@ -18,8 +18,8 @@ from .hard import hard_filter
 from .jitter import jitter_filter
 from .layered import assign_numpy, layered_filter
 from .occlusion import occlusion_filter
-from .soft import soft_filter
 from .soft_polygon import soft_polygon_filter
+from .spans import exact_soft_filter
 from .supersample import supersample_filter
 
 
@@ -286,7 +286,8 @@ def _resolve_auto(radius: np.ndarray | None, max_radius: float) -> tuple[str, di
 def _dispatch(method: str, image, radius, max_radius: float, knobs: dict):
     if method == "soft":
         if knobs["blades"] is None:
-            return soft_filter(image, radius, max_radius=max_radius)
+            # the dense gather, or row spans from SPANS_MIN_RADIUS on (same numbers, faster)
+            return exact_soft_filter(image, radius, max_radius=max_radius)
         return soft_polygon_filter(image, radius, max_radius=max_radius, **knobs)
     if method == "hard":
         return hard_filter(image, radius, max_radius=max_radius)
