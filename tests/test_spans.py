@@ -1,0 +1,220 @@
+"""The row-span path of the soft filter (`jaxdof/_filters/spans.py`) against the dense gather."""
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+import jaxdof
+import jaxdof._filters.spans as spans
+from jaxdof._filters.soft import soft_filter
+from jaxdof._filters.spans import SPANS_MIN_RADIUS, exact_soft_filter, spans_filter
+
+from .helpers import scatter_reference, step_scene
+
+
+@functools.partial(jax.jit, static_argnames="max_radius")
+def fast(image, radius, *, max_radius):
+    """The span path, jitted: one compile per shape instead of an eager scan per call."""
+    return spans_filter(image, radius, max_radius=max_radius)
+
+
+@functools.partial(jax.jit, static_argnames="max_radius")
+def dense(image, radius, *, max_radius):
+    return soft_filter(image, radius, max_radius=max_radius)
+
+
+def special_radii(shape, max_radius, seed):
+    """Random radii in [0, R] salted with the values where the geometry switches."""
+    rng = np.random.default_rng(seed)
+    r = rng.uniform(0, max_radius, shape)
+    salt = [0.0, 0.25, 0.5, 0.5 + 1e-12, 0.6, math.sqrt(0.5), 1.0, 1.5, 2.0, 2.5, 3.0]
+    salt += [max_radius, max_radius - 0.5, math.floor(max_radius), max_radius / math.sqrt(2)]
+    flat = r.reshape(-1)
+    idx = rng.choice(flat.size, size=len(salt), replace=False)
+    flat[idx] = np.minimum(salt, max_radius)
+    return flat.reshape(shape)
+
+
+def test_two_taps_cover_the_boundary():
+    """The module's claim: past a side row's (cap column's) start, at most 2 pixels are partial.
+
+    Exhaustive over the rows of every radius on a fine grid up to 400 px, in float64 numpy,
+    written independently of the module: pixel (j, k) is touched when its nearest point is inside
+    the circle and fully covered when its farthest corner is.
+    """
+    radii = np.concatenate(
+        [np.linspace(0.5, 60, 6000), np.linspace(60, 400, 1500), np.arange(1, 801) / 2 + 1e-9]
+    )
+    worst = 0
+    for r in radii:
+        n = int(r) + 3
+        k = np.arange(n)[:, None]
+        j = np.arange(n)[None, :]
+        full = (j + 0.5) ** 2 + (k + 0.5) ** 2 <= r * r
+        touched = np.maximum(j - 0.5, 0) ** 2 + np.maximum(k - 0.5, 0) ** 2 < r * r
+        a = np.where(full.any(1), (full * j).max(1), -1)  # last full pixel of row k
+        b = np.where(touched.any(1), (touched * j).max(1), -1)  # last touched pixel of row k
+        ks = k[:, 0]
+        side = b - np.maximum(a + 1, ks) + 1  # side row k starts at max(a + 1, k)
+        cap = b - np.maximum(a + 1, ks + 1) + 1  # cap column k starts at max(a + 1, k + 1)
+        worst = max(worst, side.max(), cap.max())
+    assert worst == spans.TAPS
+
+
+@pytest.mark.parametrize("max_radius", [0.7, 2.5, 9.0])
+def test_equals_dense_gather(max_radius):
+    rng = np.random.default_rng(1)
+    image = jnp.asarray(rng.uniform(size=(19, 23, 2)))
+    radius = jnp.asarray(special_radii((19, 23), max_radius, seed=2))
+    got = fast(image, radius, max_radius=max_radius)
+    want = dense(image, radius, max_radius=max_radius)
+    # float64: both sum the same exact areas in a different order, a few rounding units apart
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+
+
+def test_equals_scatter_reference_on_depth_steps():
+    image, radius = step_scene(16, 18, seed=3)  # radii 0 .. 20, with steps
+    max_radius = 6.5
+    radius = np.minimum(radius, max_radius)  # the reference does not clamp
+    got = fast(jnp.asarray(image), jnp.asarray(radius), max_radius=max_radius)
+    want = scatter_reference(image, radius, jaxdof.circle_pixel_overlap)
+    # issue 2's float64 goal: 1e-10 of the image's range (here [0, 1])
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-10)
+
+
+def test_identity_for_sharp_pixels():
+    rng = np.random.default_rng(4)
+    image = jnp.asarray(rng.uniform(size=(9, 11, 3)))
+    radius = jnp.asarray(rng.uniform(0, 0.5, (9, 11)))
+    for max_radius in (0.5, 3.0):  # a window of one pixel, and a wide one with nothing to spread
+        got = fast(image, radius, max_radius=max_radius)
+        np.testing.assert_array_equal(got, image)
+
+
+@pytest.mark.parametrize("max_radius", [3.0, 12.5])
+def test_conserves_energy(max_radius):
+    """Light placed at least `max_radius + 1` px from the border stays in the frame, all of it."""
+    rng = np.random.default_rng(5)
+    n, margin = 40, math.ceil(max_radius) + 1
+    image = np.zeros((n, n, 1))
+    image[margin:-margin, margin:-margin] = rng.uniform(size=(n - 2 * margin, n - 2 * margin, 1))
+    radius = special_radii((n, n), max_radius, seed=6)
+    out = fast(jnp.asarray(image), jnp.asarray(radius), max_radius=max_radius)
+    # float64 sums of ~1e3 terms of size <= 1
+    np.testing.assert_allclose(float(out.sum()), image.sum(), rtol=1e-12)
+
+
+def test_float32_large_radius():
+    """R = 40 on 96 x 96 in float32 against the float64 dense gather: issue 2's 2e-5 of the range."""
+    rng = np.random.default_rng(7)
+    image = rng.uniform(size=(96, 96, 1))
+    radius = special_radii((96, 96), 40.0, seed=8)
+    want = dense(jnp.asarray(image), jnp.asarray(radius), max_radius=40.0)
+    got = fast(jnp.asarray(image, jnp.float32), jnp.asarray(radius, jnp.float32), max_radius=40.0)
+    assert got.dtype == jnp.float32
+    err = float(jnp.max(jnp.abs(got.astype(jnp.float64) - want)))
+    assert err <= 2e-5 * (image.max() - image.min()), err
+
+
+def test_float32_mode_matches_dense(float32):
+    """With x64 off (every array float32, int32 indices), the two paths agree to float32."""
+    rng = np.random.default_rng(9)
+    image = jnp.asarray(rng.uniform(size=(40, 44, 3)), jnp.float32)
+    radius = jnp.asarray(special_radii((40, 44), 17.0, seed=10), jnp.float32)
+    got = fast(image, radius, max_radius=17.0)
+    want = dense(image, radius, max_radius=17.0)
+    assert got.dtype == jnp.float32
+    # both float32: each within a few 1e-6 of the exact sum (issue 2's bound is 2e-5)
+    np.testing.assert_allclose(got, want, rtol=0, atol=2e-5)
+
+
+def _weighted_sum(filt):
+    return lambda w, i, r: jnp.sum(w * filt(i, r, max_radius=3.7))
+
+
+# jitted once for both gradient tests (same shapes, same static max_radius)
+_grad_spans = jax.jit(jax.grad(_weighted_sum(spans_filter), argnums=(1, 2)))
+_grad_dense = jax.jit(jax.grad(_weighted_sum(soft_filter), argnums=(1, 2)))
+
+
+def test_gradients():
+    """Forward and reverse, float64, w.r.t. image and radius, radii inside (0.5, R)."""
+    rng = np.random.default_rng(11)
+    image = jnp.asarray(rng.uniform(size=(7, 8, 2)))
+    # strictly inside (1/2, R): the clamp and the dead zone are kinks of the model itself
+    radius = jnp.asarray(rng.uniform(0.6, 3.6, (7, 8)))
+    weights = jnp.asarray(rng.normal(size=(7, 8, 2)))
+    f = jax.jit(functools.partial(_weighted_sum(spans_filter), weights))
+    # eps 1e-4 in float64: central differences accurate to ~1e-8, far inside the default tolerance
+    check_grads(f, (image, radius), order=1, modes=("fwd", "rev"), eps=1e-4)
+    # and the same numbers as the dense gather's analytic derivative
+    for a, b in zip(_grad_spans(weights, image, radius), _grad_dense(weights, image, radius)):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+
+
+def test_gradients_finite_at_the_extremes():
+    """r = 0, r = 1/2 (the identity's edge), r = R (the clamp) and the switching radii."""
+    rng = np.random.default_rng(12)
+    image = jnp.asarray(rng.uniform(size=(7, 8, 2)))
+    weights = jnp.asarray(rng.normal(size=(7, 8, 2)))
+    radius = jnp.asarray(special_radii((7, 8), 3.7, seed=12))
+    spans_grads = _grad_spans(weights, image, radius)
+    for a, b in zip(spans_grads, _grad_dense(weights, image, radius)):
+        assert bool(jnp.all(jnp.isfinite(a)))
+        # one-sided kinks agree too: both paths use the same tap derivative
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+
+
+def test_jit_and_vmap_equal_eager():
+    rng = np.random.default_rng(13)
+    images = jnp.asarray(rng.uniform(size=(2, 12, 13, 3)))
+    radii = jnp.asarray(rng.uniform(0, 5, (2, 12, 13)))
+    f = lambda i, r: spans_filter(i, r, max_radius=5.0)  # noqa: E731
+    eager = f(images[1], radii[1])
+    jitted = jnp.stack([jax.jit(f)(i, r) for i, r in zip(images, radii)])
+    # jit and eager run the same operations; XLA may fuse them differently (a few ulp)
+    np.testing.assert_allclose(jitted[1], eager, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(jax.jit(jax.vmap(f))(images, radii), jitted, rtol=0, atol=1e-14)
+
+
+def test_coc_filter_dispatch(monkeypatch):
+    """`method="soft"` takes the span path from `SPANS_MIN_RADIUS` on, the dense gather below."""
+    calls = []
+    real = spans.spans_filter
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs["max_radius"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(spans, "spans_filter", spy)
+    rng = np.random.default_rng(14)
+    image = rng.uniform(size=(10, 10))
+    radius = rng.uniform(0, 3, (10, 10))
+    below = max(SPANS_MIN_RADIUS - 1, 0.0)
+    jax.eval_shape(lambda i, r: jaxdof.coc_filter(i, r, max_radius=below), image, radius)
+    assert calls == []
+    out = jax.jit(lambda i, r: jaxdof.coc_filter(i, r, max_radius=SPANS_MIN_RADIUS))(image, radius)
+    assert calls == [SPANS_MIN_RADIUS]
+    want = dense(jnp.asarray(image)[..., None], jnp.asarray(radius), max_radius=SPANS_MIN_RADIUS)
+    want = want[..., 0]
+    np.testing.assert_allclose(out, want, rtol=0, atol=1e-12)
+
+
+def test_forced_paths_and_bad_path():
+    rng = np.random.default_rng(15)
+    image = jnp.asarray(rng.uniform(size=(8, 9, 1)))
+    radius = jnp.asarray(rng.uniform(0, 2, (8, 9)))
+    f = jax.jit(exact_soft_filter, static_argnames=("max_radius", "path"))
+    np.testing.assert_allclose(
+        f(image, radius, max_radius=2.0, path="dense"),
+        f(image, radius, max_radius=2.0, path="spans"),
+        rtol=0,
+        atol=1e-13,  # float64, the same exact areas summed in another order
+    )
+    with pytest.raises(ValueError, match="path="):
+        exact_soft_filter(image, radius, max_radius=2.0, path="fast")
