@@ -15,6 +15,14 @@ Method (float32, jit, radii uniform in `[0, max_radius]`, RGB):
   allocates. Deterministic and immune to the load. (It leaves out the Python process and compiler,
   which `/usr/bin/time -v` would add on top.)
 
+Paths (issue 7, deliverable 2): the exact soft filter has two implementations with the same
+numbers, the dense gather over the window (`path="dense"`, cost ~ R^2) and row spans plus boundary
+taps (`path="spans"`, `jaxdof/_filters/spans.py`, cost ~ R). `--paths` times both, forced, against
+max radius at one image size, in turns (dense fwd, dense fwd+grad, spans fwd, spans fwd+grad, ...),
+checks they agree, fits the log-log exponent of CPU time between max radius 8 and 64, and reads off
+the crossover that `SPANS_MIN_RADIUS` is set from. Alone (`--paths-only`) it rewrites only its own
+section of `speed.md` and keeps the others.
+
 Writes `fits/results/speed.md` and `fits/results/speed.png`.
 
 Run: `python fits/bench_speed.py` (defaults below; `--quick` for a smoke run).
@@ -85,6 +93,123 @@ def measure(size: int, max_radius: float, repeats: int, *, run: bool = True) -> 
     return res
 
 
+def measure_paths(size: int, max_radius: float, repeats: int) -> dict:
+    """Time the dense and span paths of the exact soft filter, forced, at one size and radius."""
+    from jaxdof._filters.spans import exact_soft_filter
+
+    rng = np.random.default_rng(0)
+    image = jnp.asarray(rng.uniform(size=(size, size, 3)), jnp.float32)
+    radius = jnp.asarray(rng.uniform(0, max_radius, (size, size)), jnp.float32)
+    res = {"size": size, "R": max_radius}
+    compiled = {}
+    for path in ("dense", "spans"):
+        f = lambda i, r, path=path: exact_soft_filter(i, r, max_radius=max_radius, path=path)  # noqa: E731
+        g = jax.value_and_grad(lambda i, r, f=f: jnp.sum(f(i, r) ** 2), argnums=(0, 1))
+        for name, fn in (("fwd", f), ("grad", g)):
+            t0 = time.perf_counter()
+            compiled[f"{path}_{name}"] = jax.jit(fn).lower(image, radius).compile()
+            res[f"compile_{path}_{name}"] = time.perf_counter() - t0
+    outs = {k: jax.block_until_ready(fn(image, radius)) for k, fn in compiled.items()}
+    # the two paths compute the same sum: record how far apart they are (float32)
+    res["max_abs_diff_fwd"] = float(jnp.max(jnp.abs(outs["dense_fwd"] - outs["spans_fwd"])))
+    gd, gs = outs["dense_grad"][1], outs["spans_grad"][1]
+    res["max_rel_diff_grad"] = max(
+        float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(a))) for a, b in zip(gd, gs)
+    )
+    runs = {name: [] for name in compiled}
+    for _ in range(repeats):
+        for name, fn in compiled.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(image, radius))
+            runs[name].append((time.perf_counter() - w0, time.process_time() - c0))
+    for name, rs in runs.items():
+        res[f"wall_{name}"] = statistics.median(r[0] for r in rs)
+        res[f"cpu_{name}"] = statistics.median(r[1] for r in rs)
+    return res
+
+
+PATH_HEADER = [
+    "| max_radius | dense fwd CPU (s) | spans fwd CPU (s) | dense fwd+grad CPU (s) "
+    "| spans fwd+grad CPU (s) | dense fwd / fwd+grad wall (s) | spans fwd / fwd+grad wall (s) "
+    "| compile spans fwd / fwd+grad (s) | max abs diff (fwd) | max rel diff (grad) |",
+    "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+]
+
+
+def fmt_path_row(r: dict) -> str:
+    return (
+        f"| {r['R']:g} | {r['cpu_dense_fwd']:.3f} | {r['cpu_spans_fwd']:.3f} | "
+        f"{r['cpu_dense_grad']:.3f} | {r['cpu_spans_grad']:.3f} | "
+        f"{r['wall_dense_fwd']:.3f} / {r['wall_dense_grad']:.3f} | "
+        f"{r['wall_spans_fwd']:.3f} / {r['wall_spans_grad']:.3f} | "
+        f"{r['compile_spans_fwd']:.1f} / {r['compile_spans_grad']:.1f} | "
+        f"{r['max_abs_diff_fwd']:.1e} | {r['max_rel_diff_grad']:.1e} |"
+    )
+
+
+PATHS_BEGIN = "<!-- paths: begin -->"
+PATHS_END = "<!-- paths: end -->"
+
+
+def paths_section(rows: list, size: int, repeats: int, info: dict, command: str) -> list[str]:
+    """Markdown for the dense-vs-spans comparison: table, exponents, crossover."""
+    from jaxdof._filters.spans import SPANS_MIN_RADIUS
+
+    lines = [
+        PATHS_BEGIN,
+        f"## Dense gather vs row spans against max radius ({size}^2 RGB float32)",
+        "",
+        f"Produced by `{command}`: the exact soft filter forced onto each path "
+        "(`jaxdof._filters.spans.exact_soft_filter(..., path=...)`), radii uniform in "
+        f"[0, max_radius], jit, medians of {repeats} calls timed in turns (dense fwd, dense "
+        "fwd+grad, spans fwd, spans fwd+grad) after a warm-up, seconds per call; compile apart. "
+        "CPU = this process's CPU time (all threads), the steadier figure on a shared machine. "
+        "Last two columns: how far the paths' outputs (image range [0, 1]) and gradients "
+        "(relative to the largest) are apart in float32.",
+        "",
+        *PATH_HEADER,
+        *[fmt_path_row(r) for r in rows],
+        "",
+    ]
+    span = [r for r in rows if 8 <= r["R"] <= 64]
+    if len(span) >= 2:
+        xs = [r["R"] for r in span]
+        ex = {
+            k: slope(xs, [r[k] for r in span])
+            for k in ("cpu_dense_fwd", "cpu_spans_fwd", "cpu_dense_grad", "cpu_spans_grad")
+        }
+        exw = {k: slope(xs, [r[k] for r in span]) for k in ("wall_spans_fwd", "wall_spans_grad")}
+        lines += [
+            f"Exponent of CPU time against max radius, least squares over max radius "
+            f"{', '.join(f'{x:g}' for x in xs)}: **spans forward {ex['cpu_spans_fwd']:.2f}, "
+            f"fwd+grad {ex['cpu_spans_grad']:.2f}** (wall time: {exw['wall_spans_fwd']:.2f}, "
+            f"{exw['wall_spans_grad']:.2f}); dense forward {ex['cpu_dense_fwd']:.2f}, fwd+grad "
+            f"{ex['cpu_dense_grad']:.2f}. Issue 7's goal: at most 1.3 on the fast path.",
+            "",
+        ]
+    wins = [
+        r["R"]
+        for r in rows
+        if r["cpu_spans_fwd"] < r["cpu_dense_fwd"] and r["cpu_spans_grad"] < r["cpu_dense_grad"]
+    ]
+    # the crossover: the smallest swept radius from which spans wins both, at every larger one
+    cross = next(
+        (r["R"] for i, r in enumerate(rows) if all(x["R"] in wins for x in rows[i:])), None
+    )
+    lines += [
+        "Crossover (CPU time, forward and fwd+grad both faster on spans from this max radius on, "
+        f"among those swept): **{cross if cross is None else f'{cross:g}'}**. "
+        f"`SPANS_MIN_RADIUS` in `jaxdof/_filters/spans.py` is {SPANS_MIN_RADIUS:g}: "
+        '`coc_filter(method="soft")` takes the span path from there on.',
+        "",
+        "Machine for this section: "
+        + "; ".join(f"{k}: {v}" for k, v in info.items() if k != "jaxdof")
+        + ".",
+        PATHS_END,
+    ]
+    return lines
+
+
 def slope(xs, ys) -> float:
     """Least-squares exponent `k` of `y ~ x^k`."""
     return float(np.polyfit(np.log(xs), np.log(ys), 1)[0])
@@ -119,6 +244,19 @@ def main(argv=None) -> None:
         "--radius-size", type=int, default=256, help="image side of the radius sweep"
     )
     parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument(
+        "--path-radii",
+        type=float,
+        nargs="+",
+        default=[4, 8, 12, 16, 24, 32, 64],
+        help="max radii of the dense-vs-spans comparison",
+    )
+    parser.add_argument("--path-size", type=int, default=256, help="image side of that comparison")
+    parser.add_argument(
+        "--paths-only",
+        action="store_true",
+        help="run only the dense-vs-spans comparison and rewrite only its section of speed.md",
+    )
     parser.add_argument("--quick", action="store_true", help="tiny smoke run")
     parser.add_argument("--out", type=pathlib.Path, default=RESULTS / "speed.md")
     parser.add_argument("--replot", action="store_true", help="redraw the plot from the saved JSON")
@@ -129,8 +267,33 @@ def main(argv=None) -> None:
         return
     if args.quick:
         args.sizes, args.radii, args.radius_size, args.repeats = [64, 128], [2, 4], 64, 1
+        args.path_radii, args.path_size = [4, 8], 64
+    command = "python fits/bench_speed.py" + (f" {' '.join(argv)}" if argv else "")
+    if argv is None and len(sys.argv) > 1:
+        command = "python fits/bench_speed.py " + " ".join(sys.argv[1:])
 
     info = machine_info()
+    by_path = []
+    for r in args.path_radii:
+        by_path.append(measure_paths(args.path_size, r, args.repeats))
+        print(fmt_path_row(by_path[-1]), flush=True)
+    if args.paths_only:
+        info["load average (1, 5, 15 min) at end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        section = "\n".join(paths_section(by_path, args.path_size, args.repeats, info, command))
+        text = args.out.read_text() if args.out.exists() else ""
+        if PATHS_BEGIN in text:
+            head, rest = text.split(PATHS_BEGIN, 1)
+            text = head + section + rest.split(PATHS_END, 1)[1]
+        else:
+            text = text.rstrip("\n") + "\n\n" + section + "\n"
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+        saved_json = args.out.with_suffix(".json")
+        saved = json.loads(saved_json.read_text()) if saved_json.exists() else {}
+        saved["paths"] = {"rows": by_path, "info": info, "command": command}
+        saved_json.write_text(json.dumps(saved, indent=1))
+        print(f"wrote {args.out}")
+        return
     by_size = []
     for size in args.sizes:
         by_size.append(measure(size, args.size_radius, args.repeats))
@@ -151,9 +314,7 @@ def main(argv=None) -> None:
     lines = [
         "# Speed and memory of the soft filter against image size and blur radius",
         "",
-        "Produced by `python fits/bench_speed.py`"
-        + (f" `{' '.join(argv)}`" if argv else "")
-        + f"; float32, RGB, radii uniform in [0, max_radius], jit; medians of {args.repeats} calls "
+        f"Produced by `{command}`; float32, RGB, radii uniform in [0, max_radius], jit; medians of {args.repeats} calls "
         "(forward and fwd+grad timed in turns after a warm-up), per megapixel; compile time apart; "
         "memory from XLA's buffer assignment of the compiled program (arguments + outputs + "
         "temporaries). fwd+grad is `value_and_grad` of `sum(out^2)` in image and radius.",
@@ -176,12 +337,12 @@ def main(argv=None) -> None:
         lines += [
             f"Exponent of CPU time against max radius between {big[0]['R']:g} and {big[-1]['R']:g} "
             f"(least squares, log-log): forward {exps['cpu_fwd']:.2f}, fwd+grad "
-            f"{exps['cpu_grad']:.2f}. The soft filter is the dense gather over the whole window "
-            "(one exact weight per mirror class of offsets, each scattered to its up-to-8 mirrored "
-            "offsets), so its cost grows like the window's area, R^2; issue 7's goal of at most "
-            "1.3 needs the boundary-only path (row spans with prefix sums), not built yet.",
+            f'{exps["cpu_grad"]:.2f}. `coc_filter(method="soft")` runs the dense gather below '
+            "`SPANS_MIN_RADIUS` and row spans from there on, so this curve mixes the two; the "
+            "section on the two paths below separates them.",
             "",
         ]
+    lines += [*paths_section(by_path, args.path_size, args.repeats, info, command), ""]
     ratio = mem["mem_grad"] / mem["mem_fwd"]
     lines += [
         f"## Memory, reverse vs forward ({mem['size']}^2 RGB, max_radius {mem['R']:g})",
@@ -202,7 +363,14 @@ def main(argv=None) -> None:
 
     args.out.with_suffix(".json").write_text(
         json.dumps(
-            {"by_size": by_size, "by_radius": by_radius, "memory": mem, "info": info}, indent=1
+            {
+                "by_size": by_size,
+                "by_radius": by_radius,
+                "memory": mem,
+                "info": info,
+                "paths": {"rows": by_path, "info": info, "command": command},
+            },
+            indent=1,
         )
     )
     plot(by_size, by_radius, info, args.out.with_suffix(".png"))
