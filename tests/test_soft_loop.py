@@ -1,11 +1,19 @@
 """The soft filter's fast path: the per-tap area and the grouping of offsets into mirror classes."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxdof._filters.common import tap_offsets
-from jaxdof._filters.soft import gather, mirror_classes, symmetric_gather, tap_area, tap_weight
+from jaxdof._filters.soft import (
+    gather,
+    mirror_classes,
+    soft_filter,
+    symmetric_gather,
+    tap_area,
+    tap_weight,
+)
 from jaxdof._overlap import _quadrant
 
 
@@ -75,3 +83,39 @@ def test_symmetric_gather_equals_plain_gather():
 def test_mirror_classes_reject_an_asymmetric_set():
     with pytest.raises(ValueError, match="reflections"):
         mirror_classes(np.array([[0, 0], [0, 1]]))
+
+
+def _plain_soft(image, radius, max_radius):
+    """The same scatter left entirely to JAX's autodiff: the per-tap gather, no custom rules."""
+    return gather(image, radius, tap_offsets(max_radius), tap_weight)
+
+
+def test_hand_written_derivatives_equal_autodiff_of_the_plain_gather():
+    """`soft_filter`'s tangent primitive and its transpose give JAX's own derivatives, every mode."""
+    rng = np.random.default_rng(4)
+    image = jnp.asarray(rng.uniform(size=(9, 10, 2)))
+    radius = jnp.asarray(rng.uniform(0, 3.4, (9, 10)))
+    f = lambda i, r: soft_filter(i, r, max_radius=3.4)
+    g = lambda i, r: _plain_soft(i, r, 3.4)
+    ti, tr = jnp.asarray(rng.normal(size=image.shape)), jnp.asarray(rng.normal(size=radius.shape))
+    # forward mode (what Levenberg-Marquardt uses)
+    jf, jg = jax.jvp(f, (image, radius), (ti, tr))[1], jax.jvp(g, (image, radius), (ti, tr))[1]
+    # reverse mode, with respect to both inputs and to each alone
+    loss = lambda fn: (lambda i, r: jnp.sum(jnp.sin(fn(i, r))))
+    rf = jax.grad(loss(f), argnums=(0, 1))(image, radius)
+    rg = jax.grad(loss(g), argnums=(0, 1))(image, radius)
+    r_only = jax.grad(loss(f), argnums=1)(image, radius)
+    # linearize then transpose (optimistix's normal equations)
+    _, lin = jax.linearize(f, image, radius)
+    ct = jnp.asarray(rng.normal(size=image.shape))
+    tf = jax.linear_transpose(lin, image, radius)(ct)
+    tg = jax.vjp(g, image, radius)[1](ct)
+    # second order: the primitive's own JVP (a Hessian-vector product in the radius)
+    hvp = lambda fn: jax.jvp(jax.grad(lambda r: loss(fn)(image, r)), (radius,), (tr,))[1]
+    # vmap of a gradient (the vprim batching rule)
+    vg = jax.vmap(jax.grad(loss(f), argnums=1))(jnp.stack([image, 2 * image]), jnp.stack([radius] * 2))
+    vref = jax.grad(loss(g), argnums=1)(2 * image, radius)
+    # all are sums of the same few O(1) terms in another order: float64 rounding
+    for got, want in [(jf, jg), *zip(rf, rg), (r_only, rg[1]), *zip(tf, tg), (hvp(f), hvp(g)),
+                      (vg[1], vref)]:
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)

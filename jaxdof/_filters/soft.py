@@ -22,12 +22,15 @@ the forward pass and in reverse mode (the body is recomputed instead of storing 
 
 from __future__ import annotations
 
+import functools as ft
 import math
 
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.interpreters import ad
 from jaxtyping import Array, Float
 
 from .._overlap import _c, _horner, _num_terms
@@ -124,6 +127,18 @@ def tap_area(ax, bx, ay, by, r, *, with_arc: bool = False):
     return area, arc
 
 
+def _weight_and_slope(ax, bx, ay, by, m, centre, r, *, with_slope: bool):
+    """`w = m |disc(r) ∩ rect| / (pi r^2)` and, if asked, `dw/dr`; identity and 0 for `r <= 1/2`."""
+    big = r > 0.5
+    rs = jnp.where(big, r, 1)
+    inv = m / (math.pi * rs * rs)
+    if not with_slope:
+        return jnp.where(big, tap_area(ax, bx, ay, by, rs) * inv, centre)
+    area, arc = tap_area(ax, bx, ay, by, rs, with_arc=True)
+    # d/dr [A / (pi r^2)] = (dA/dr - 2 A / r) / (pi r^2), with dA/dr the arc length inside.
+    return jnp.where(big, area * inv, centre), jnp.where(big, (arc - 2 * area / rs) * inv, 0)
+
+
 @jax.custom_jvp
 def tap_weight(ax, bx, ay, by, m, centre, r):
     """Normalised weight `m |disc(r) ∩ rect| / (pi r^2)`; exactly the identity for `r <= 1/2`.
@@ -131,31 +146,13 @@ def tap_weight(ax, bx, ay, by, m, centre, r):
     A disc of radius at most half a pixel centred in its pixel stays inside it, so the weight is 1 at
     the centre tap and 0 elsewhere: no 0/0 as `r -> 0`, and a zero derivative (the dead zone).
     """
-    big = r > 0.5
-    rs = jnp.where(big, r, 1)
-    area = tap_area(ax, bx, ay, by, rs)
-    return jnp.where(big, m * area / (math.pi * rs * rs), centre)
+    return _weight_and_slope(ax, bx, ay, by, m, centre, r, with_slope=False)
 
 
 @tap_weight.defjvp
 def _tap_weight_jvp(primals, tangents):
-    ax, bx, ay, by, m, centre, r = primals
-    big = r > 0.5
-    rs = jnp.where(big, r, 1)
-    area, arc = tap_area(ax, bx, ay, by, rs, with_arc=True)
-    inv = m / (math.pi * rs * rs)
-    w = jnp.where(big, area * inv, centre)
-    # d/dr [A / (pi r^2)] = (dA/dr - 2 A / r) / (pi r^2), with dA/dr the arc length inside.
-    dw = jnp.where(big, (arc - 2 * area / rs) * inv, 0)
+    w, dw = _weight_and_slope(*primals, with_slope=True)
     return w, dw * tangents[-1]
-
-
-def soft_filter(
-    image: Float[Array, "h w c"], radius: Float[Array, "h w"], *, max_radius: float
-) -> Float[Array, "h w c"]:
-    """Exact soft-coverage scatter of `image` (H, W, C) by per-pixel radii, clamped to `max_radius`."""
-    offsets = tap_offsets(max_radius)
-    return symmetric_gather(image, radius, offsets, tap_weight)
 
 
 def gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
@@ -205,35 +202,157 @@ def mirror_classes(offsets: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarra
     }
 
 
+def _scan_classes(offsets: np.ndarray, dtype, carry, body):
+    """Fold `body(k, carry, mirrors (k, 2), geometry)` over the canonical offsets of each class.
+
+    One checkpointed `lax.scan` per class size `k` (1, 4, 8): memory stays at a few images whatever
+    the window, in the forward pass and when the loop is differentiated.
+    """
+    for k, (canonical, mirrors) in mirror_classes(offsets).items():
+        xs = (jnp.asarray(mirrors, jnp.int32), _offset_geometry(canonical, dtype))
+
+        def step(carry, xs, k=k):
+            return body(k, carry, *xs), None
+
+        carry, _ = lax.scan(jax.checkpoint(step, prevent_cse=False), carry, xs)
+    return carry
+
+
+def _shift_sum(padded, mirrors, k: int, pad: int, sign: int, shape) -> Array:
+    """`sum_j padded[pad + sign * o_j + p]` over the `k` mirrored offsets `o_j`, for every `p`.
+
+    With `padded` the zero-padded `x`: `sign = -1` gives the scatter `sum_j x[p - o_j]`, `sign = +1`
+    its adjoint `sum_j x[p + o_j]`. Both read one padded array, `k` slices fused into one pass.
+    """
+    zero = jnp.zeros((), jnp.int32)
+    total = None
+    for j in range(k):
+        at = (pad + sign * mirrors[j, 0], pad + sign * mirrors[j, 1], zero)
+        piece = lax.dynamic_slice(padded, at, shape)
+        total = piece if total is None else total + piece
+    return total
+
+
+def _pad(x, pad: int) -> Array:
+    return jnp.pad(x, ((pad, pad), (pad, pad), (0, 0)))
+
+
 def symmetric_gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
     """The same sum as `gather`, for a weight with the disc's symmetry, one weight per mirror class.
 
     `out[p] = sum_o image[p - o] w(o, r[p - o])` with `w` invariant under the 8 reflections of the
-    grid. For each canonical offset the weighted source `image * w(o, radius)` is formed once and
-    added into a padded output at each of its (1, 4 or 8) mirrored offsets, as a scatter: the
-    window `out[o : o + H, o : o + W]` is read, incremented and written back in place. Written this
-    way, reverse mode is cheap too: the transpose of that in-place update is a plain slice of the
-    cotangent (the transpose of the gather form, slicing a padded source, would write a mostly-zero
-    padded image per mirror). A checkpointed `lax.scan` per mirror class keeps memory at a few
-    images, forward and reverse.
+    grid. For each canonical offset the weighted source `image * w(o, radius)` is formed once, on the
+    source grid, zero-padded, and read at each of its (1, 4 or 8) mirrored offsets.
     """
-    h, w, c = image.shape
     pad = int(np.abs(offsets).max()) if offsets.size else 0
-    acc = jnp.zeros((h + 2 * pad, w + 2 * pad, c), image.dtype)
-    zero = jnp.zeros((), jnp.int32)
-    for k, (canonical, mirrors) in mirror_classes(offsets).items():
-        geometry = _offset_geometry(canonical, image.dtype)
-        starts = jnp.asarray(pad + mirrors, jnp.int32)  # source (0, 0) lands at pad + o
 
-        def body(acc, xs, k=k):
-            start, geom = xs
-            weighted = image * weight_fn(*geom, radius)[..., None]
-            for j in range(k):  # the same weighted sources, added at each mirrored offset
-                at = (start[j, 0], start[j, 1], zero)
-                window = lax.dynamic_slice(acc, at, (h, w, c))
-                acc = lax.dynamic_update_slice(acc, window + weighted, at)
-            return acc, None
+    def body(k, acc, mirrors, geom):
+        weighted = image * weight_fn(*geom, radius)[..., None]
+        return acc + _shift_sum(_pad(weighted, pad), mirrors, k, pad, -1, image.shape)
 
-        body = jax.checkpoint(body, prevent_cse=False)
-        acc, _ = lax.scan(body, acc, (starts, geometry))
-    return acc[pad : pad + h, pad : pad + w]
+    return _scan_classes(offsets, image.dtype, jnp.zeros_like(image), body)
+
+
+# The soft filter with hand-written derivatives.
+#
+# The scatter is linear in the image and smooth in the radius, so its tangent is
+#   T(dI, dr) = sum_o S_o(dI * w_o(r) + I * dr * w_o'(r)),   (S_o x)[p] = x[p - o],
+# and, as the offsets of a mirror class are closed under negation, its adjoint is a gather of the
+# same shape from the cotangent, padded once:
+#   dI* = sum_o w_o(r) S_o^T ct,   dr* = sum_o w_o'(r) <I, S_o^T ct>_channels,   S_o^T = S_{-o}.
+# Left to JAX, the transpose of the padded-slice loop would write a zero-padded image per mirrored
+# tap. The tangent is therefore a primitive whose transpose rule is that gather: forward mode
+# (`jvp`, `linearize`: what Levenberg-Marquardt uses) and reverse mode both cost about one more
+# filter pass, vmap works through equinox's vprim, and higher derivatives are JAX's own through
+# `_tangent` (correct, not tuned).
+
+
+def _tangent(image, radius, d_image, d_radius, *, max_radius: float) -> Array:
+    """`T(dI, dr)`: one pass per canonical offset computing `w` and `w'` together."""
+    offsets = tap_offsets(max_radius)
+    pad = int(np.abs(offsets).max()) if offsets.size else 0
+
+    def body(k, acc, mirrors, geom):
+        w, dw = _weight_and_slope(*geom, radius, with_slope=True)
+        x = d_image * w[..., None] + image * (dw * d_radius)[..., None]
+        return acc + _shift_sum(_pad(x, pad), mirrors, k, pad, -1, image.shape)
+
+    return _scan_classes(offsets, image.dtype, jnp.zeros_like(image), body)
+
+
+def _adjoint(image, radius, cotangent, *, max_radius: float) -> tuple[Array, Array]:
+    """`(dI*, dr*)`, the adjoint of `T` applied to `cotangent`."""
+    offsets = tap_offsets(max_radius)
+    pad = int(np.abs(offsets).max()) if offsets.size else 0
+    padded = _pad(cotangent, pad)
+
+    def body(k, acc, mirrors, geom):
+        d_image, d_radius = acc
+        w, dw = _weight_and_slope(*geom, radius, with_slope=True)
+        g = _shift_sum(padded, mirrors, k, pad, +1, image.shape)
+        return d_image + g * w[..., None], d_radius + dw * jnp.sum(image * g, axis=-1)
+
+    init = (jnp.zeros_like(image), jnp.zeros_like(radius))
+    return _scan_classes(offsets, image.dtype, init, body)
+
+
+def _tangent_impl(image, radius, d_image, d_radius, *, max_radius):
+    return [_tangent(image, radius, d_image, d_radius, max_radius=max_radius)]
+
+
+def _tangent_abstract_eval(image, radius, d_image, d_radius, *, max_radius):
+    return [jax.core.ShapedArray(image.shape, image.dtype)]
+
+
+def _materialise(tangent, primal):
+    return jnp.zeros(primal.shape, primal.dtype) if type(tangent) is ad.Zero else tangent
+
+
+def _tangent_jvp(primals, tangents, *, max_radius):
+    tangents = tuple(_materialise(t, p) for t, p in zip(tangents, primals))
+    out, d_out = jax.jvp(ft.partial(_tangent, max_radius=max_radius), tuple(primals), tangents)
+    return [out], [d_out]
+
+
+def _tangent_transpose(cts, image, radius, d_image, d_radius, *, max_radius):
+    (ct,) = cts
+    if ad.is_undefined_primal(image) or ad.is_undefined_primal(radius):
+        raise ValueError("the soft filter's tangent is linear in (d_image, d_radius) only")
+    if ct is None:
+        return [None, None, None, None]
+    ct_image, ct_radius = _adjoint(image, radius, ct, max_radius=max_radius)
+    return [
+        None,
+        None,
+        ct_image if ad.is_undefined_primal(d_image) else None,
+        ct_radius if ad.is_undefined_primal(d_radius) else None,
+    ]
+
+
+_soft_tangent_p = eqxi.create_vprim(
+    "jaxdof_soft_tangent", _tangent_impl, _tangent_abstract_eval, _tangent_jvp, _tangent_transpose
+)
+
+
+@ft.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _soft(image, radius, max_radius: float):
+    return symmetric_gather(image, radius, tap_offsets(max_radius), tap_weight)
+
+
+@_soft.defjvp
+def _soft_jvp(max_radius, primals, tangents):
+    image, radius = primals
+    d_image, d_radius = tangents
+    (d_out,) = _soft_tangent_p.bind(image, radius, d_image, d_radius, max_radius=max_radius)
+    return _soft(image, radius, max_radius), d_out
+
+
+def soft_filter(
+    image: Float[Array, "h w c"], radius: Float[Array, "h w"], *, max_radius: float
+) -> Float[Array, "h w c"]:
+    """Exact soft-coverage scatter of `image` (H, W, C) by per-pixel radii, clamped to `max_radius`.
+
+    Forward mode and reverse mode each cost about one more pass of the same shape as the filter
+    (see `_soft_tangent_p` above).
+    """
+    return _soft(image, radius, float(max_radius))
