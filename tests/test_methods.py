@@ -9,7 +9,8 @@ import pytest
 from jax.test_util import check_grads
 
 from jaxdof import ThinLens, coc_filter, render
-from jaxdof._filters.auto import choose_method
+from jaxdof._filters.auto import choose_method, max_layers
+from jaxdof._filters.tabulated import radius_levels, tabulated_filter
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
 
 
@@ -259,16 +260,52 @@ def test_layered_float32_matches_soft():
     assert _err(out, coc_filter(image, radius)) < 5e-6
 
 
+def test_layered_keeps_sharp_pixels_sharp_when_binning():
+    """More radii than layers: the radii <= 1/2 keep a level of their own, so they stay the identity."""
+    rng = np.random.default_rng(5)
+    image = rng.uniform(size=(20, 22, 3))
+    sharp = rng.uniform(size=(20, 22)) < 0.4
+    radius = np.where(sharp, 0.3, rng.uniform(1.0, 6.0, (20, 22)))
+    out = coc_filter(image, radius, method="layered", layers=3, max_radius=6.0)
+    # a sharp pixel whose neighbours within 6 px are all sharp receives only its own light
+    isolated = sharp.copy()
+    for dy in range(-6, 7):
+        for dx in range(-6, 7):
+            isolated &= np.roll(np.roll(sharp, dy, 0), dx, 1)
+    # every such pixel's light: its own (the identity), whatever the binning of the others
+    src = np.zeros((20, 22, 3))
+    src[sharp] = image[sharp]
+    ref = coc_filter(src, np.where(sharp, 0.3, 0.0), max_radius=6.0)
+    np.testing.assert_allclose(np.asarray(out)[isolated], np.asarray(ref)[isolated], atol=1e-12)
+    # and a sharp pixel's own light is never spread: the layer of level 0 is the identity
+    only_sharp = coc_filter(src, radius, method="layered", layers=3, max_radius=6.0)
+    np.testing.assert_allclose(only_sharp, src, atol=1e-12)
+
+
+def test_tabulated_equals_soft():
+    """The looked-up weights are the soft filter's: same result, depth edges and identity level included."""
+    image, radius = _levels_scene([0.2, 1.7, 3.25, 6.0, 6.5])
+    levels, index = radius_levels(radius)
+    assert np.array_equal(levels, [0.0, 1.7, 3.25, 6.0, 6.5])
+    out = tabulated_filter(jnp.asarray(image), max_radius=6.5, levels=levels, index=index)
+    assert _err(out, coc_filter(image, radius, max_radius=6.5)) < 1e-13
+
+
 def test_auto_picks_what_the_scene_needs():
     image, _ = _levels_scene([0.0])
     const = np.full(image.shape[:2], 5.5)
     few = _levels_scene([0.0, 3.0, 8.0])[1]
     many = np.random.default_rng(0).uniform(0, 8, image.shape[:2])
+    # FFT layers only where L of them cost less than the window's taps (LAYER_COST_IN_TAPS each)
+    assert max_layers(5.5) == 1 and max_layers(8.0) == 3
     assert choose_method(const) == "convolution"
-    assert choose_method(np.where(few > 0, 5.5, 0.3)) == "layered"  # 0.3 is the identity level
+    assert choose_method(np.where(few > 0, 5.5, 0.3)) == "tabulated"  # 0.3 is the identity level
     assert choose_method(few) == "layered"
+    assert choose_method(few, max_radius=12.0) == "layered"
+    assert choose_method(np.where(few > 0, few, 0.3), max_radius=3.0) == "tabulated"
+    # every pixel its own radius: no table to share
     assert choose_method(many) == "soft"
-    for radius in (const, few, many):
+    for radius in (const, few, many, np.minimum(few, 3.0)):
         # always the soft filter's result, whatever it chose
         assert _err(coc_filter(image, radius, method="auto"), coc_filter(image, radius)) < 1e-12
     # traced radius: the documented fallback to the soft gather

@@ -1,15 +1,20 @@
 r"""`"auto"`: model only what the scene needs, chosen from the concrete radius map.
 
-- one radius everywhere (radii `<= 1/2` count as one level, the identity): **one convolution**
-  with the soft disc kernel (the layered filter with `L = 1`);
-- a few distinct radii, when `L` FFT layers cost less than the soft gather's taps (see
-  `max_layers`): the **layered** filter with exactly those levels, which equals the soft filter;
-- otherwise the **soft** gather.
+Let `L` be the number of distinct radii (all radii `<= 1/2` count as one level, the identity) and
+`T` the number of taps of the window. Every choice gives the soft filter's result (to float
+rounding), so `"auto"` is a speed choice, never an accuracy one:
 
-All three give the soft filter's result (to float rounding), so `"auto"` is a speed choice, never an
-accuracy one. The choice needs concrete radii: under `jit`/`vmap`/`grad` with a traced radius map
-`"auto"` falls back to `"soft"` (documented, not an error, so that `render(..., method="auto")` can
-sit inside a traced fit). The choice is logged at INFO level on the `"jaxdof"` logger and returned by
+- **layered** (FFT): one convolution per level with the soft disc kernel, `L` FFTs whatever the
+  radius; chosen when `L * LAYER_COST_IN_TAPS < T`, i.e. few levels and a large window. With
+  `L = 1` this is a single convolution (reported as `"convolution"`).
+- **tabulated**: the soft gather with the `L` distinct weights per offset computed once and looked
+  up (`tabulated.py`), the cost of a gather with constant weights; chosen otherwise while the
+  table is small against the image (`L <= H W / 8`).
+- **soft**: the gather computing each weight (smoothly varying depth: every pixel its own radius).
+
+The choice needs concrete radii: under `jit`/`vmap`/`grad` with a traced radius map `"auto"` falls
+back to `"soft"` (documented, not an error, so that `render(..., method="auto")` can sit inside a
+traced fit). The choice is logged at INFO level on the `"jaxdof"` logger and returned by
 `choose_method`.
 """
 
@@ -24,21 +29,21 @@ from .common import is_concrete, tap_offsets
 
 logger = logging.getLogger("jaxdof")
 
-# Cost of one FFT layer relative to one soft-gather tap over the same image, measured on CPU: at
-# 128 x 128 x 3 float32, max radius 8 (201 taps), a layer costs ~12-15 taps; at 32 x 32 x 3
-# (fits/tradeoff.py --quick) ~50 taps (8 layers 2.9 ms against soft 1.4 ms), because a small frame
-# leaves the per-layer overhead uncovered. The larger figure is used, so that "auto" picks layers
-# only where they win on small frames too (on large frames it then gives away some speed).
-LAYER_COST_IN_TAPS = 48.0
-#: Never more layers than this (memory: the padded spectra are accumulated one level at a time, but
-#: the assignment sorts the map once per call).
+# Cost of one FFT layer in taps of the tabulated gather, measured on CPU (float32 RGB, 4 levels;
+# 2-core machine at load ~5): at 256 x 256 one layer cost ~60 taps (R = 8: 4 layers 9.1 ms, 241
+# taps 10.0 ms; R = 24: 10.3 ms against 71 ms), at 64 x 64 ~70 taps (R = 8: 0.79 ms against 0.66
+# ms). Layers are picked only where they win by this margin.
+LAYER_COST_IN_TAPS = 64.0
+#: Never more FFT layers than this (the assignment and the spectra grow with it).
 MAX_LAYERS = 32
+#: The table of weights is used while it has at most this many levels per pixel of the image.
+TABLE_LEVELS_PER_PIXEL = 1 / 8
 
 
 def max_layers(max_radius: float) -> int:
-    """Largest number of levels for which the layered filter beats the soft gather at `max_radius`."""
+    """Largest number of levels for which FFT layers beat the tabulated gather at `max_radius`."""
     taps = len(tap_offsets(max_radius))
-    return int(min(MAX_LAYERS, max(1, taps // LAYER_COST_IN_TAPS)))
+    return int(min(MAX_LAYERS, taps // LAYER_COST_IN_TAPS))
 
 
 def distinct_levels(radius) -> int:
@@ -48,7 +53,7 @@ def distinct_levels(radius) -> int:
 
 
 def choose_method(radius, *, max_radius: float | None = None) -> str:
-    """What `method="auto"` does with this radius map: `"convolution"`, `"layered"` or `"soft"`.
+    """What `method="auto"` does with this radius map.
 
     **Arguments:**
 
@@ -56,8 +61,9 @@ def choose_method(radius, *, max_radius: float | None = None) -> str:
       `max_radius` if one is used).
     - `max_radius`: the window in pixels; `None` takes the map's maximum.
 
-    **Returns:** `"convolution"` (one level: the layered filter with `layers=1`), `"layered"` (with
-    `layers=distinct_levels(radius)`), or `"soft"`; `"soft"` for a traced map.
+    **Returns:** `"convolution"` (one level, one FFT convolution), `"layered"` (FFT layers, one per
+    distinct radius), `"tabulated"` (the gather with looked-up weights) or `"soft"`; `"soft"` for a
+    traced map.
     """
     if not is_concrete(radius):
         return "soft"
@@ -65,6 +71,6 @@ def choose_method(radius, *, max_radius: float | None = None) -> str:
     if max_radius is None:
         max_radius = float(r.max()) if r.size else 0.0
     n = distinct_levels(np.minimum(r, max_radius))
-    if n == 1:
-        return "convolution"
-    return "layered" if n <= max_layers(max_radius) else "soft"
+    if n <= max_layers(max_radius):
+        return "convolution" if n == 1 else "layered"
+    return "tabulated" if n <= max(1.0, r.size * TABLE_LEVELS_PER_PIXEL) else "soft"

@@ -21,6 +21,7 @@ from .occlusion import occlusion_filter
 from .soft_polygon import soft_polygon_filter
 from .spans import exact_soft_filter
 from .supersample import supersample_filter
+from .tabulated import radius_levels, tabulated_filter
 
 
 logger = logging.getLogger("jaxdof")
@@ -280,10 +281,15 @@ def _resolve_auto(radius: np.ndarray | None, max_radius: float) -> tuple[str, di
     logger.info("coc_filter(method='auto') chose %r", choice)
     if choice == "soft":
         return "soft", {"blades": None, "rotation": 0.0}
+    if choice == "tabulated":
+        levels, index = radius_levels(radius)
+        return "tabulated", {"levels": levels, "index": index}
     return "layered", {"layers": 1 if choice == "convolution" else distinct_levels(radius)}
 
 
 def _dispatch(method: str, image, radius, max_radius: float, knobs: dict):
+    if method == "tabulated":  # only from "auto", on a concrete radius map
+        return tabulated_filter(image, max_radius=max_radius, **knobs)
     if method == "soft":
         if knobs["blades"] is None:
             # the dense gather, or row spans from SPANS_MIN_RADIUS on (same numbers, faster)

@@ -12,9 +12,10 @@ everywhere, depth edges included: the scatter formulation has no occlusion, so a
 not special (occlusion-aware compositing is the ray-traced validation's business). Radii `<= 1/2`
 all act as the identity and share one level.
 
-With more than `L` distinct radii the range `[min r, max r]` is cut into `L` equal bins and each
+With more than `L` distinct radii the pixels at radius `<= 1/2` (sharp: the identity) keep a level
+of their own, the range of the others is cut into equal bins for the remaining levels, and each
 bin is blurred with the **mean radius of its pixels**; the error is that of a radius off by up to
-half a bin width.
+half a bin width, and sharp pixels stay sharp.
 
 The convolutions run in the Fourier domain on a frame padded by the window (`2W` zeros, so no
 wrap-around): `L` forward FFTs of the masked image, one product per level, the sum, one inverse FFT.
@@ -54,11 +55,13 @@ def assign_levels(
     r = jnp.where(radius <= 0.5, 0, radius)  # all of these are the identity: one level
     if assignment is not None:
         idx = jnp.asarray(assignment, jnp.int32)
+        # counted in numpy: a segment sum over a constant map would be constant-folded by XLA,
+        # which takes seconds on a megapixel
+        counts = jnp.asarray(np.bincount(assignment.reshape(-1), minlength=layers), r.dtype)
     else:
         idx = _assign_traced(lax.stop_gradient(r), layers)
-    one = jnp.ones_like(r)
+        counts = jax.ops.segment_sum(jnp.ones_like(r).reshape(-1), idx.reshape(-1), layers)
     sums = jax.ops.segment_sum(r.reshape(-1), idx.reshape(-1), num_segments=layers)
-    counts = jax.ops.segment_sum(one.reshape(-1), idx.reshape(-1), num_segments=layers)
     levels = sums / jnp.where(counts > 0, counts, 1)
     return idx, levels
 
@@ -69,8 +72,12 @@ def assign_numpy(radius: np.ndarray, layers: int) -> np.ndarray:
     uniq, inverse = np.unique(r, return_inverse=True)
     if uniq.size <= layers:
         return inverse.reshape(r.shape).astype(np.int32)
-    lo, hi = uniq[0], uniq[-1]
-    return np.clip(np.floor((r - lo) / (hi - lo) * layers), 0, layers - 1).astype(np.int32)
+    sharp = uniq[0] == 0 and layers > 1  # the identity keeps level 0 to itself
+    lo, hi = (uniq[1] if sharp else uniq[0]), uniq[-1]
+    bins = layers - sharp
+    span = hi - lo if hi > lo else 1
+    idx = np.clip(np.floor((r - lo) / span * bins), 0, bins - 1) + sharp
+    return np.where(sharp & (r == 0), 0, idx).astype(np.int32)
 
 
 def _assign_traced(r: Array, layers: int) -> Array:
@@ -83,9 +90,15 @@ def _assign_traced(r: Array, layers: int) -> Array:
     exact_idx = jnp.sum(
         r[..., None] > uniq[None, None], axis=-1
     )  # position among the sorted levels
-    lo, hi = flat[0], flat[-1]
+    # binned: radii <= 1/2 (now 0) keep level 0 when present, the rest share the other levels
+    sharp = (flat[0] == 0) & (layers > 1)
+    lo = jnp.where(sharp, jnp.min(jnp.where(flat > 0, flat, flat[-1])), flat[0])
+    hi = flat[-1]
+    shift = sharp.astype(r.dtype)
+    bins = layers - shift
     span = jnp.where(hi > lo, hi - lo, 1)
-    bin_idx = jnp.clip(jnp.floor((r - lo) / span * layers), 0, layers - 1).astype(exact_idx.dtype)
+    bin_idx = jnp.clip(jnp.floor((r - lo) / span * bins), 0, bins - 1) + shift
+    bin_idx = jnp.where(sharp & (r == 0), 0, bin_idx).astype(exact_idx.dtype)
     return jnp.where(distinct <= layers, exact_idx, bin_idx).astype(jnp.int32)
 
 
