@@ -5,19 +5,23 @@ Computed as a gather over the integer offsets `o` of the window,
 $$\text{out}[p] = \sum_o \text{image}[p - o]\, w(o, r_{p - o}), \qquad
   w(o, r) = \frac{|\,\text{disc}(0, r) \cap \text{pixel}(o)\,|}{\pi r^2}.$$
 
-Two things make it cheap:
+Three things make it cheap:
 
 - **Symmetry.** A disc is symmetric under the eight reflections of the square grid, so
   `w(o, r)` is the same for the up-to-eight offsets `(±oy, ±ox), (±ox, ±oy)`. The weight is computed
-  once per *canonical* offset `0 <= oy <= ox`, on the source grid, and the weighted source image is
-  scattered to every mirrored offset: about one eighth of the weight evaluations, and the mirrored
-  additions read the same array (`symmetric_gather`).
+  once per *canonical* offset `0 <= oy <= ox`, on the source grid, and the weighted source image,
+  zero-padded, is read at every mirrored offset in one fused pass: about one eighth of the weight
+  evaluations (`symmetric_gather`).
 - **A lean per-tap formula** (`tap_area`): two square roots locate the arc's end points, and the
   thin circular segment under the chord comes from one series in the sine of the quarter
   angle that converges over the whole range, so no branch is evaluated and thrown away.
+- **Hand-written derivatives** (`soft_filter`): the tangent is a primitive whose transpose is a
+  gather of the same shape from the padded cotangent (see the comment above `_tangent`), so
+  forward and reverse mode each cost about one more pass, not a transpose that writes a padded
+  image per tap.
 
-The loop over offsets is a `lax.scan` whose body is checkpointed: memory stays at a few images in
-the forward pass and in reverse mode (the body is recomputed instead of storing per-offset weights).
+The loops over offsets are `lax.scan`s whose bodies are checkpointed: memory stays at a few images
+in the forward pass and in either mode of differentiation, whatever the window.
 """
 
 from __future__ import annotations
