@@ -9,9 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 
 import jaxdof
-from jaxdof import ThinLens, fit_lens, render, solve_lens
+from jaxdof import ThinLens, _fit, fit_lens, render, solve_lens
 
 
 H = W = 32
@@ -84,6 +85,7 @@ def test_noise_free_recovery_float32(float32):
     true = lens(np.float32)
     target = render(image, depth, true)
     assert target.dtype == jnp.float32
+    compiled = {}
     for free in IDENTIFIABLE:
         init = wrong_init(free, np.float32)
         res = fit_lens(image, depth, target, init, free=free, max_radius=WINDOW, starts=STARTS)
@@ -91,6 +93,9 @@ def test_noise_free_recovery_float32(float32):
         assert res.lens.f_number.dtype == jnp.float32
         err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
         assert max(err.values()) < 1e-3, (free, err)  # the issue's float32 target
+        # Free sets of one size run the same compiled solve (which fields is data, not code).
+        size = compiled.setdefault(len(free), _fit._fit_starts._cached._cache_size())
+        assert _fit._fit_starts._cached._cache_size() == size, free
     # The rank test also holds at float32's rounding level (same compiled solve).
     with pytest.raises(ValueError, match="not determined by the data"):
         fit_lens(
@@ -175,7 +180,10 @@ def test_reproducible_bit_for_bit():
     target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
     init = wrong_init(("f_number", "focus_distance"))
     a = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+    compiled = (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size())
     b = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+    # A repeated call with the same shapes re-uses both compiled pieces: no re-tracing.
+    assert (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size()) == compiled
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert a.message == b.message
@@ -356,3 +364,25 @@ def test_bad_targets():
 
 def test_exported():
     assert jaxdof.fit_lens is fit_lens and jaxdof.FitResult.__doc__
+
+
+def test_residual_jacobian_rule():
+    """The residual's JVP rule (it builds the small Jacobian once per point, for the solver)
+    gives the plain forward model's derivatives, with respect to the lens coordinates and the
+    data alike, forward and reverse."""
+    image, depth = (x[:12, :12] for x in scene())
+    target = np.asarray(render(image, depth, lens(), max_radius=3.0)) + 0.01
+    image, depth, targets, sqrt_w, base, _ = _fit._prepare(image, depth, target, lens(), None)
+    layout = _fit._Spec(("f_number", "focus_distance"), (), 1, False).layout(base, depth)
+    model = _fit._Model(1, 3.0, False, n_live=2)
+    args = (image, depth, targets, sqrt_w, layout)
+    y = model.pack(base, layout) + jnp.array([0.0, 0.3, -0.2])  # off the data, circles > 1/2 px
+    jac = jax.jit(jax.jacfwd(model))
+    plain = jax.jit(jax.jacfwd(model.residuals))
+    np.testing.assert_allclose(jac(y, args), plain(y, args), rtol=1e-12, atol=1e-15)
+    # float64 finite differences, eps 1e-4 on coordinates and pixel values of order 1 (jitted, so
+    # that each derivative compiles once instead of running op by op).
+    check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"))
+    check_grads(
+        jax.jit(lambda im: model(y, (im, *args[1:]))), (image,), order=1, modes=("fwd", "rev")
+    )
