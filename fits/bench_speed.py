@@ -210,6 +210,26 @@ def paths_section(rows: list, size: int, repeats: int, info: dict, command: str)
     return lines
 
 
+def git_state() -> str:
+    """Commit of the checkout and the library files with uncommitted edits (what was timed)."""
+    import subprocess
+
+    root = pathlib.Path(__file__).resolve().parent.parent
+    try:
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "diff", "--name-only", "HEAD", "--", "jaxdof"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+        ).stdout.split()
+    except OSError:
+        return "unknown"
+    return head + (f" + uncommitted edits to {', '.join(dirty)}" if dirty else "")
+
+
 def slope(xs, ys) -> float:
     """Least-squares exponent `k` of `y ~ x^k`."""
     return float(np.polyfit(np.log(xs), np.log(ys), 1)[0])
@@ -273,6 +293,7 @@ def main(argv=None) -> None:
         command = "python fits/bench_speed.py " + " ".join(sys.argv[1:])
 
     info = machine_info()
+    info["git"] = git_state()
     by_path = []
     for r in args.path_radii:
         by_path.append(measure_paths(args.path_size, r, args.repeats))

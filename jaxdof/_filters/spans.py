@@ -26,7 +26,7 @@ computes the same sum (to rounding) in scatter form:
   there per side (checked exhaustively in the tests for every radius on a fine grid up to 400 px);
   taps past the circle have area 0 and cost only their slot. Each tap's weight is the exact
   `tap_weight` of the soft filter (same float32-stable area formula, same analytic derivative), and
-  is added directly (a scatter of `J` contiguous pixels).
+  is added directly (a scatter, one pixel per update).
 - **Consistency at the seams.** "Fully covered" is decided by one predicate, symmetric in `j`
   and `k` and exact in floating point (`(j + 1/2)^2` and their sum are exact for offsets below
   ~2000 px), so the row view of the interior and the column view of the caps always agree on
@@ -41,14 +41,19 @@ from `tap_weight`), correct everywhere except on those switching radii (a measur
 Everything is `lax.scatter_add`, elementwise arithmetic and one `cumsum`: forward and reverse
 mode, `jit`, `vmap`.
 
-**Cost model.** With `R = max_radius`, one `lax.scan` step per row offset `m = 0 .. ~R` does,
-for every source at once: the span `a_m` (a square root), 4 boundary weights (2 side, 2 cap
-taps), and scatters of 4 span marks, 4 side windows and 4 cap windows (`J = 2` pixels x C channels
-each; rows `±m`, both sides). The steps past the diagonal (`m > ~R / sqrt(2)`) only mark spans.
-So about `12 R` scattered updates and `3 R` exact areas per source, against the dense gather's
-`pi R^2` taps: linear in `R`. The price is the scatter's per-update overhead (indices formed at
-run time, a few ns each on a CPU), which the dense gather, shifting whole images by static
-offsets, does not pay; hence the crossover `SPANS_MIN_RADIUS` below.
+**Cost model.** With `R = max_radius`, one checkpointed `lax.scan` step per row offset
+`m = 0 .. ceil(R + 1/2) - 1` does, for every source at once: the span `a_m` (a square root), and
+scatters of 4 span marks (rows `±m`, both ends); the steps up to the diagonal
+(`m <= ~R / sqrt(2)`) also evaluate 4 exact weights (`J = 2` side taps, `J = 2` cap taps) and
+scatter 16 boundary pixels (`J` taps x 2 sides x rows `±m`, and the same for the caps in columns
+`±m`). Per source that is about `4 R + 16 R / sqrt(2) ~ 15 R` scattered pixels (C channels each)
+and `2.8 R` exact areas, against the dense gather's `pi R^2` taps (an eighth of them evaluated,
+by symmetry): linear in `R`. The buffers are flat `(padded pixels, C)` arrays so each update
+carries one index. The price is the scatter's per-update cost (an index formed at run time,
+about 5-10 ns per pixel of 3 channels on the CPU measured), which the dense gather, adding whole
+shifted images at static offsets, does not pay; hence the crossover `SPANS_MIN_RADIUS`. Memory
+is two padded image-sized buffers plus the step's temporaries, independent of `R`, forward and
+reverse (the scan body is recomputed in the backward pass, not stored).
 
 **Precision.** The running sum along a row adds and removes each span's value once: its rounding
 error is a few float32 units of the row's running interior value per pixel crossed, so a long
@@ -74,9 +79,12 @@ from .soft import soft_filter, tap_weight
 TAPS = 2
 
 #: `coc_filter(method="soft")` uses this path when `max_radius >= SPANS_MIN_RADIUS`, the dense
-#: gather below it. Measured crossover (CPU, 256^2 RGB float32, forward and fwd+grad, see
-#: `fits/results/speed.md`, `python fits/bench_speed.py --spans-only`): see the value's comment.
-SPANS_MIN_RADIUS = 16.0
+#: gather below it. Measured crossover, `python fits/bench_speed.py --paths-only` (section "Dense
+#: gather vs row spans" of `fits/results/speed.md`; 256^2 RGB float32, CPU time, 2-core CPU shared
+#: with other jobs): at max radius 8 the paths tie forward (0.058 s vs 0.059 s dense) and spans
+#: lose fwd+grad (0.145 s vs 0.105 s); from 12 on spans win both (12: 0.086 vs 0.106 s forward,
+#: 0.192 vs 0.230 s fwd+grad; 64: 0.42 vs 2.53 s and 0.94 vs 4.81 s).
+SPANS_MIN_RADIUS = 12.0
 
 PATHS = ("auto", "dense", "spans")
 
