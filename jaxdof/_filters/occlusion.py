@@ -57,6 +57,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
+from .._custom_types import DepthLike
 from .soft import soft_filter
 
 
@@ -105,37 +106,36 @@ def nearest_seed(seed: Bool[Array, "h w"]) -> tuple[Int[Array, "h w"], Int[Array
     none = jnp.full((h, w), -1, jnp.int32)
     by, bx = jnp.where(seed, yy, none), jnp.where(seed, xx, none)
     big = jnp.iinfo(jnp.int32).max
-
-    def dist2(cy, cx):
-        d = (cy - yy) ** 2 + (cx - xx) ** 2
-        return jnp.where(cy >= 0, d, big)
-
-    def shifted(a, dy, dx):
-        # a[p + (dy, dx)], -1 outside the frame
-        p = max(abs(dy), abs(dx))
-        ap = jnp.pad(a, p, constant_values=-1)
-        return lax.dynamic_slice(ap, (p + dy, p + dx), (h, w))
-
     steps = []
-    s = 1 << max(max(h, w) - 1, 1).bit_length() - 1
+    s = 1 << (max(h, w) - 1).bit_length() - 1 if max(h, w) > 1 else 1
     while s >= 1:
         steps.append(s)
         s //= 2
     steps.append(1)
-    for s in steps:
-        best = dist2(by, bx)
-        for dy in (-s, 0, s):
-            for dx in (-s, 0, s):
-                if dy == 0 and dx == 0:
-                    continue
-                cy, cx = shifted(by, dy, dx), shifted(bx, dy, dx)
-                d = dist2(cy, cx)
-                better = d < best
-                by, bx, best = (
-                    jnp.where(better, cy, by),
-                    jnp.where(better, cx, bx),
-                    jnp.minimum(d, best),
-                )
+    pad = steps[0]
+    unit = jnp.asarray([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)], jnp.int32)
+
+    def one_pass(carry, s):
+        # Every candidate is read from the previous pass's map (one loop body, compiled once: an
+        # unrolled chain of shifted selects makes XLA's fusion recompute it and compile for
+        # minutes).
+        by, bx = carry
+        py = jnp.pad(by, pad, constant_values=-1)
+        px = jnp.pad(bx, pad, constant_values=-1)
+
+        def candidate(o):
+            at = (pad + o[0] * s, pad + o[1] * s)
+            cy = lax.dynamic_slice(py, at, (h, w))
+            cx = lax.dynamic_slice(px, at, (h, w))
+            d = jnp.where(cy >= 0, (cy - yy) ** 2 + (cx - xx) ** 2, big)
+            return cy, cx, d
+
+        cy, cx, d = jax.vmap(candidate)(unit)  # (9, h, w); the centre (0, 0) keeps the current
+        k = jnp.argmin(d, axis=0)[None]
+        pick = lambda a: jnp.take_along_axis(a, k, axis=0)[0]
+        return (pick(cy), pick(cx)), None
+
+    (by, bx), _ = lax.scan(one_pass, (by, bx), jnp.asarray(steps, jnp.int32))
     return by, bx
 
 
@@ -163,7 +163,7 @@ def occlusion_filter(
     radius: Float[Array, "h w"],
     *,
     max_radius: float,
-    depth: Float[Array, "h w"] | None,
+    depth: DepthLike | None,
     layers: int,
     fill: bool,
     jump: float = DEFAULT_JUMP,
