@@ -283,7 +283,10 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if args.replot:
         saved = json.loads(args.out.with_suffix(".json").read_text())
-        plot(saved["by_size"], saved["by_radius"], saved["info"], args.out.with_suffix(".png"))
+        paths = saved.get("paths", {}).get("rows")
+        plot(
+            saved["by_size"], saved["by_radius"], saved["info"], args.out.with_suffix(".png"), paths
+        )
         return
     if args.quick:
         args.sizes, args.radii, args.radius_size, args.repeats = [64, 128], [2, 4], 64, 1
@@ -313,6 +316,9 @@ def main(argv=None) -> None:
         saved = json.loads(saved_json.read_text()) if saved_json.exists() else {}
         saved["paths"] = {"rows": by_path, "info": info, "command": command}
         saved_json.write_text(json.dumps(saved, indent=1))
+        if "by_size" in saved:
+            png = args.out.with_suffix(".png")
+            plot(saved["by_size"], saved["by_radius"], saved["info"], png, by_path)
         print(f"wrote {args.out}")
         return
     by_size = []
@@ -394,10 +400,12 @@ def main(argv=None) -> None:
             indent=1,
         )
     )
-    plot(by_size, by_radius, info, args.out.with_suffix(".png"))
+    plot(by_size, by_radius, info, args.out.with_suffix(".png"), by_path)
 
 
-def plot(by_size: list, by_radius: list, info: dict, png: pathlib.Path) -> None:
+def plot(
+    by_size: list, by_radius: list, info: dict, png: pathlib.Path, paths: list | None = None
+) -> None:
     try:
         import matplotlib
 
@@ -407,7 +415,7 @@ def plot(by_size: list, by_radius: list, info: dict, png: pathlib.Path) -> None:
     except ImportError:
         print("matplotlib not installed: no plot")
         return
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig, axes = plt.subplots(1, 3 if paths else 2, figsize=(15 if paths else 10, 4))
     for ax, rows, key, label in (
         (axes[0], by_size, "size", f"image side (px), max_radius {by_size[0]['R']:g}"),
         (axes[1], by_radius, "R", f"max radius (px), {by_radius[0]['size']}^2 image"),
@@ -425,6 +433,24 @@ def plot(by_size: list, by_radius: list, info: dict, png: pathlib.Path) -> None:
         )
     for ax, rows, key in ((axes[0], by_size, "size"), (axes[1], by_radius, "R")):
         ax.set_xticks([r[key] for r in rows])  # after every loglog call, which resets the ticks
+        ax.xaxis.set_major_formatter(ScalarFormatter())
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.legend()
+    if paths:
+        ax = axes[2]
+        x = [r["R"] for r in paths]
+        for key, style in (
+            ("cpu_dense_fwd", "o-"),
+            ("cpu_dense_grad", "s--"),
+            ("cpu_spans_fwd", "o-"),
+            ("cpu_spans_grad", "s--"),
+        ):
+            label = key.replace("cpu_", "").replace("_", " ").replace("grad", "fwd+grad")
+            ax.loglog(x, [r[key] for r in paths], style, label=label)
+        ax.set_xlabel(f"max radius (px), {paths[0]['size']}^2 image, forced path")
+        ax.set_ylabel("CPU seconds per call")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.set_xticks(x)
         ax.xaxis.set_major_formatter(ScalarFormatter())
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.legend()
