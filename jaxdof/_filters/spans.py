@@ -55,10 +55,11 @@ shifted images at static offsets, does not pay; hence the crossover `SPANS_MIN_R
 is two padded image-sized buffers plus the step's temporaries, independent of `R`, forward and
 reverse (the scan body is recomputed in the backward pass, not stored).
 
-**Precision.** The running sum along a row adds and removes each span's value once: its rounding
-error is a few float32 units of the row's running interior value per pixel crossed, so a long
-row (thousands of pixels) at large radius loses a little more than the dense gather; the tests
-check float32 against the float64 dense result at R = 40.
+**Precision.** The running sum along a row adds and removes each span's value once, so its
+rounding error grows with the row's length rather than with the window. Measured in float32
+against the float64 result (uniform image in [0, 1], radii uniform in [0, R]): 8e-7 on a
+16 x 2048 image at R = 32 (the dense gather: 1.3e-6); `tests/test_spans.py` checks 96 x 96 at
+R = 40 against issue 2's bound, 2e-5 of the image's range.
 """
 
 from __future__ import annotations
