@@ -221,10 +221,11 @@ def _residuals_jvp(model: _Model, primals, tangents):
     def column(t):
         return jax.jvp(lambda y_: model.residuals(y_, args), (y,), (t,))
 
-    r, jac = jax.vmap(column, out_axes=(None, 1))(basis)
-    if isinstance(y_dot, SymbolicZero):
+    if isinstance(y_dot, SymbolicZero):  # differentiated with respect to the data only
+        r = model.residuals(y, args)
         out = jnp.zeros_like(r)
     else:
+        r, jac = jax.vmap(column, out_axes=(None, 1))(basis)
         out = jac @ y_dot[live]
     # Derivatives with respect to the data (e.g. implicit differentiation of a fit with respect to
     # the image) are rare: a plain JVP through the render, only for the inputs that carry one.
