@@ -82,9 +82,9 @@ TAPS = 2
 #: `coc_filter(method="soft")` uses this path when `max_radius >= SPANS_MIN_RADIUS`, the dense
 #: gather below it. Measured crossover, `python fits/bench_speed.py --paths-only` (section "Dense
 #: gather vs row spans" of `fits/results/speed.md`; 256^2 RGB float32, CPU time, 2-core CPU shared
-#: with other jobs): at max radius 8 the paths tie forward (0.058 s vs 0.059 s dense) and spans
-#: lose fwd+grad (0.145 s vs 0.105 s); from 12 on spans win both (12: 0.086 vs 0.106 s forward,
-#: 0.192 vs 0.230 s fwd+grad; 64: 0.42 vs 2.53 s and 0.94 vs 4.81 s).
+#: with other jobs): at max radius 8 spans lose (0.078 s vs 0.074 s dense forward, 0.210 vs
+#: 0.153 s fwd+grad); from 12 on they win both (12: 0.093 vs 0.127 s forward, 0.233 vs 0.253 s
+#: fwd+grad; 64: 0.39 vs 2.33 s and 0.84 vs 4.23 s). An earlier run gave the same crossover.
 SPANS_MIN_RADIUS = 12.0
 
 PATHS = ("auto", "dense", "spans")
