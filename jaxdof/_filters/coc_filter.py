@@ -185,7 +185,11 @@ def coc_filter(
     - `image`: linear-light image, `(H, W)` or `(H, W, C)`, floating point.
     - `radius`: circle-of-confusion radius of each source pixel, `(H, W)`, pixels, `>= 0`.
     - `method`: how the coverage is computed (the seeds' family; see `jaxdof/_filters/<name>.py`):
-        - `"soft"`: the exact analytic coverage above, the reference.
+        - `"soft"`: the exact analytic coverage above, the reference. Below `max_radius = 12`
+          (`spans.SPANS_MIN_RADIUS`, the measured crossover) a gather over the window's offsets,
+          one weight per mirror class (`soft.py`); from there on the same sum by row spans of fully
+          covered pixels plus the analytic boundary pixels, whose cost grows linearly in the radius
+          (`spans.py`). Both give the same numbers to rounding.
         - `"hard"`: a pixel belongs to a disc when its centre is inside; normalised by the count
           of covered pixels (energy exact). No gradient in `radius`.
         - `"supersample"`: coverage counted on `samples x samples` sub-pixel points (default 4),
@@ -200,9 +204,11 @@ def coc_filter(
         - `"layered"`: radii quantised to `layers` levels (default 8), each level blurred by one
           soft disc kernel (FFT); equal to `"soft"` when the map has at most `layers` distinct radii.
           Gradient in `radius` only through the level means.
-        - `"auto"`: one convolution, the layered filter or the soft gather, whichever the concrete
-          radius map needs (`choose_method`); always the soft filter's result. Falls back to
-          `"soft"` when the radius map is traced (under `jit`/`grad` in `radius`).
+        - `"auto"`: what the concrete radius map needs (`choose_method`): FFT layers for a few
+          distinct radii and a large window, the soft gather with its weights tabulated per
+          distinct radius (`tabulated.py`) for a few hundred levels, the soft filter otherwise;
+          always the soft filter's result. Falls back to `"soft"` when the radius map is traced
+          (under `jit`/`grad` in `radius`).
         - `"occlusion"` (opt-in): the pixels are split into at most `layers` (default 4) layers
           at relative gaps of more than 3% in `depth` (`(H, W)`, positive z-depth, e.g. metres;
           `jaxdof.render` passes its own; without it the frame is one layer); each layer (with
