@@ -7,12 +7,14 @@ Questions:
    Jacobian at the truth? Does the reported standard error match that spread?
 2. Does a focus bracket (three photos, `f` and `N` shared) determine `f` and `N` apart, and how well?
 3. What do wall time and function evaluations look like against `scipy.optimize.least_squares`
-   with a finite-difference Jacobian on the same (jitted) forward model?
+   with a finite-difference Jacobian on the same (jitted) forward model, at 24 x 24 (where
+   per-call overheads dominate) and at 96 x 96 (where the renders do)?
 
 Run:
 
     python fits/recover.py            # 24 x 24 scenes, 30 trials per noise level (~10-15 min on 2 cores)
     python fits/recover.py --quick    # 6 trials, fewer timing runs (a few minutes)
+    python fits/recover.py --cost-only  # only section 3 (cost vs scipy), keeping sections 1-2
 
 Writes `fits/results/recover.md` and `fits/results/recover.png` (`--quick` adds `_quick`).
 
@@ -67,24 +69,27 @@ SIGMAS = (0.0, 0.001, 0.01, 0.03)
 FREE = ("f_number", "focus_distance")
 
 
-def texture(rng):
-    img = scipy.ndimage.gaussian_filter(rng.uniform(size=(H, W)), 0.7)
+def texture(rng, size=H):
+    img = scipy.ndimage.gaussian_filter(rng.uniform(size=(size, size)), 0.7)
     img = (img - img.min()) / (img.max() - img.min())
     return 0.2 + 0.6 * img
 
 
-def scenes(rng):
-    yy, xx = np.mgrid[0:H, 0:W]
+def scenes(rng, size=H):
+    """The four scenes at `size x size` (the texture keeps its 0.7 px grain; the depth maps keep
+    their shapes, scaled to the image)."""
+    h = w = size
+    yy, xx = np.mgrid[0:h, 0:w]
     out = {}
-    out["planes"] = np.select([xx < W // 3, xx < 2 * W // 3], [1.2, 2.0], 3.5).astype(float)
-    out["slant"] = 1.0 + 2.0 * xx / (W - 1)
-    edges = np.sort(rng.choice(np.arange(3, W - 3), 5, replace=False))
+    out["planes"] = np.select([xx < w // 3, xx < 2 * w // 3], [1.2, 2.0], 3.5).astype(float)
+    out["slant"] = 1.0 + 2.0 * xx / (w - 1)
+    edges = np.sort(rng.choice(np.arange(3, w - 3), 5, replace=False))
     levels = rng.uniform(1.0, 4.0, size=6)
     out["steps"] = levels[np.searchsorted(edges, xx[0], side="right")][None, :] + 0 * yy
-    inv = scipy.ndimage.gaussian_filter(rng.standard_normal((H, W)), 6.0)
+    inv = scipy.ndimage.gaussian_filter(rng.standard_normal((h, w)), 6.0 * size / H)
     inv = (inv - inv.min()) / (inv.max() - inv.min())
     out["smooth"] = 1 / (1 / 4.0 + inv * (1 / 1.0 - 1 / 4.0))
-    return {k: (texture(rng), v.astype(np.float64)) for k, v in out.items()}
+    return {k: (texture(rng, size), v.astype(np.float64)) for k, v in out.items()}
 
 
 def true_lens(name):
@@ -139,12 +144,140 @@ def scipy_fit(fwd, target, init, tol):
         return (np.asarray(fwd(jnp.asarray(n), jnp.asarray(d_f))) - target).ravel()
 
     x0 = np.array([np.log(float(init.f_number)), np.log(float(init.focus_distance) - F)])
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     sol = scipy.optimize.least_squares(
         fun, x0, jac="2-point", method="trf", xtol=tol, ftol=tol, gtol=tol
     )
-    wall = time.perf_counter() - t
-    return np.exp(sol.x[0]), F + np.exp(sol.x[1]), wall, count[0], sol.status > 0
+    wall, cpu = time.perf_counter() - t, time.process_time() - c
+    return np.exp(sol.x[0]), F + np.exp(sol.x[1]), wall, cpu, count[0], sol.status > 0
+
+
+def timed_fit(*args, **kwargs):
+    """`fit_lens` with wall and process CPU time of the whole call, results on the host."""
+    t, c = time.perf_counter(), time.process_time()
+    res = fit_lens(*args, **kwargs)
+    jax.block_until_ready(res)
+    return res, time.perf_counter() - t, time.process_time() - c
+
+
+def _median_time(f, reps):
+    """Median wall and process CPU time of `f()` (after one warm-up call)."""
+    jax.block_until_ready(f())
+    ws, cs = [], []
+    for _ in range(reps):
+        t, c = time.perf_counter(), time.process_time()
+        jax.block_until_ready(f())
+        ws.append(time.perf_counter() - t)
+        cs.append(time.process_time() - c)
+    return float(np.median(ws)), float(np.median(cs))
+
+
+def outside_compiled(reps=15):
+    """Wall time of a warm `fit_lens` call (24 x 24 `planes`, one start) spent outside its two
+    compiled calls (input checks, set-up, message), by timing those calls (blocking) inside it."""
+    import jaxdof._fit as fit_module
+
+    rng = np.random.default_rng(7)
+    image, depth = scenes(rng)["planes"]
+    lens = true_lens("planes")
+    target = np.asarray(render(image, depth, lens, max_radius=WINDOW))
+    target = target + 0.01 * rng.standard_normal(target.shape)
+    init = random_init(rng, lens)
+    inside = [0.0]
+    saved = fit_module._fit_starts, fit_module._finish
+
+    def timed(f):
+        def g(*a, **k):
+            t = time.perf_counter()
+            out = jax.block_until_ready(f(*a, **k))
+            inside[0] += time.perf_counter() - t
+            return out
+
+        return g
+
+    fit_module._fit_starts, fit_module._finish = (timed(f) for f in saved)
+    try:
+        kw = dict(free=FREE, max_radius=WINDOW, starts=1)
+        fit_lens(image, depth, target, init, **kw)
+        total, outside = [], []
+        for _ in range(reps):
+            inside[0] = 0.0
+            t = time.perf_counter()
+            jax.block_until_ready(fit_lens(image, depth, target, init, **kw))
+            total.append(time.perf_counter() - t)
+            outside.append(total[-1] - inside[0])
+    finally:
+        fit_module._fit_starts, fit_module._finish = saved
+    return dict(total=float(np.median(total)), outside=float(np.median(outside)))
+
+
+def cost_study(quick):
+    """Section 3: wall time and evaluations of fit_lens (one start, default starts) and scipy.
+
+    For every size, scene and trial: one warm-up call of each (compilation excluded), then
+    `reps` interleaved timed calls of each from the same start on the same target; medians.
+    Also the cost of one render and of the Jacobian that one LM step builds, in isolation.
+    """
+    rng = np.random.default_rng(20261123)
+    reps = 3
+    sizes = ((H, 2 if quick else 4), (96, 1 if quick else 2))  # (image size, trials per scene)
+    sigma_t = 0.01
+    timing, unit = [], {}
+    for size, n_trials in sizes:
+        sc = scenes(rng, size)
+        for name, (image, depth) in sc.items():
+            lens = true_lens(name)
+            img_j, dep_j = jnp.asarray(image), jnp.asarray(depth)
+            fwd = partial(_forward, img_j, dep_j)  # one compilation per size
+            clean = np.asarray(fwd(lens.f_number, lens.focus_distance))
+            if name == "slant":
+                theta = jnp.array([N_TRUE, float(lens.focus_distance)])
+                n0, d0 = lens.f_number, lens.focus_distance
+                unit[size] = dict(
+                    render=_median_time(partial(fwd, n0, d0), 20),
+                    jacobian=_median_time(partial(_jacobian, img_j, dep_j, theta), 20),
+                )
+            for _ in range(n_trials):
+                target = clean + sigma_t * rng.standard_normal(clean.shape)
+                init = random_init(rng, lens)
+                kw = dict(free=FREE, max_radius=WINDOW)
+                fit_lens(image, depth, target, init, starts=1, **kw)  # warm-up (compiles once)
+                if size == H:
+                    fit_lens(image, depth, target, init, **kw)
+                scipy_fit(fwd, target, init, 1e-8)
+                rec = dict(ours1=[], cpu1=[], ours4=[], scipy=[], scipy_cpu=[])
+                for _ in range(reps):
+                    r1, w1, c1 = timed_fit(image, depth, target, init, starts=1, **kw)
+                    rec["ours1"].append(w1)
+                    rec["cpu1"].append(c1)
+                    if size == H:
+                        rec["ours4"].append(timed_fit(image, depth, target, init, **kw)[1])
+                    n_s, d_s, ws, cs, evals, sok = scipy_fit(fwd, target, init, 1e-8)
+                    rec["scipy"].append(ws)
+                    rec["scipy_cpu"].append(cs)
+                row = {k: float(np.median(v)) if v else float("nan") for k, v in rec.items()}
+                row.update(
+                    size=size,
+                    scene=name,
+                    steps=int(r1.num_steps),
+                    evals=evals,
+                    scipy_ok=bool(sok),
+                    ours_ok=bool(r1.success),
+                    # Agreement in units of the reported standard error.
+                    dN=abs(n_s - float(r1.lens.f_number)) / float(r1.stderr["f_number"]),
+                    dD=abs(d_s - float(r1.lens.focus_distance))
+                    / float(r1.stderr["focus_distance"]),
+                )
+                timing.append(row)
+                print(row, flush=True)
+    return dict(
+        timing=timing,
+        unit={str(k): v for k, v in unit.items()},
+        outside=outside_compiled(),
+        reps=reps,
+        load=os.getloadavg()[0],
+        date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    )
 
 
 def main(argv=None):
@@ -156,15 +289,24 @@ def main(argv=None):
     ap.add_argument(
         "--trials", type=int, default=None, help="override the number of trials (smoke runs)"
     )
+    ap.add_argument(
+        "--cost-only",
+        action="store_true",
+        help="re-run only section 3 (cost against scipy) and rewrite the report, keeping the saved "
+        "results of sections 1 and 2",
+    )
     args = ap.parse_args(argv)
+    suffix = "_quick" if args.quick else ""
+    raw_path = Path(__file__).parent / "results" / f"recover{suffix}_raw.json"
     if args.report_only:
-        suffix = "_quick" if args.quick else ""
-        raw = json.loads(
-            (Path(__file__).parent / "results" / f"recover{suffix}_raw.json").read_text()
-        )
+        return report(json.loads(raw_path.read_text()), args.quick)
+    if args.cost_only:
+        raw = json.loads(raw_path.read_text())
+        raw["cost"] = cost_study(args.quick)
+        raw.pop("timing", None)  # the format of section 3 before the cost study was split out
+        raw_path.write_text(json.dumps(raw))
         return report(raw, args.quick)
     trials = args.trials or (6 if args.quick else 30)
-    n_timing = min(trials, 3 if args.quick else 5)
     n_bracket = min(trials, 3 if args.quick else 10)
     (Path(__file__).parent / "results").mkdir(exist_ok=True)
     rng = np.random.default_rng(20261122)
@@ -276,42 +418,7 @@ def main(argv=None):
     print("bracket", bracket, flush=True)
 
     # ---------------------------------------------------------------- 3. timing vs scipy
-    timing = []
-    sigma_t = 0.01
-    for name, (image, depth) in sc.items():
-        lens = true_lens(name)
-        fwd = partial(
-            _forward, jnp.asarray(image), jnp.asarray(depth)
-        )  # one compilation for all scenes
-        clean = np.asarray(fwd(lens.f_number, lens.focus_distance))
-        for _ in range(n_timing):
-            target = clean + sigma_t * rng.standard_normal(clean.shape)
-            init = random_init(rng, lens)
-            fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW, starts=1)  # warm
-            t = time.perf_counter()
-            r1 = fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW, starts=1)
-            t1 = time.perf_counter() - t
-            t = time.perf_counter()
-            fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW)
-            t4 = time.perf_counter() - t
-            n_s, d_s, ts, evals, sok = scipy_fit(fwd, target, init, 1e-8)
-            timing.append(
-                dict(
-                    scene=name,
-                    ours1=t1,
-                    ours4=t4,
-                    steps=int(r1.num_steps),
-                    scipy=ts,
-                    evals=evals,
-                    scipy_ok=sok,
-                    ours_ok=bool(r1.success),
-                    # Agreement in units of the reported standard error.
-                    dN=abs(n_s - float(r1.lens.f_number)) / float(r1.stderr["f_number"]),
-                    dD=abs(d_s - float(r1.lens.focus_distance))
-                    / float(r1.stderr["focus_distance"]),
-                )
-            )
-            print(timing[-1], flush=True)
+    cost = cost_study(args.quick)
 
     total = time.perf_counter() - t_start
     raw = dict(
@@ -320,13 +427,12 @@ def main(argv=None):
             for r in rows
         ],
         bracket=bracket.tolist(),
-        timing=timing,
+        cost=cost,
         compile_s=compile_s,
         trials=trials,
         total=total,
     )
-    suffix = "_quick" if args.quick else ""
-    (Path(__file__).parent / "results" / f"recover{suffix}_raw.json").write_text(json.dumps(raw))
+    raw_path.write_text(json.dumps(raw))
     report(raw, args.quick)
 
 
@@ -337,7 +443,7 @@ def report(raw, quick):
     write(
         rows,
         np.array(raw["bracket"]),
-        raw["timing"],
+        raw["cost"],
         raw["compile_s"],
         raw["trials"],
         raw["total"],
@@ -349,7 +455,7 @@ def fmt(x, digits=3):
     return f"{x:.{digits}g}"
 
 
-def write(rows, bracket, timing, compile_s, trials, total, quick):
+def write(rows, bracket, cost, compile_s, trials, total, quick):
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
     suffix = "_quick" if quick else ""
@@ -423,29 +529,84 @@ def write(rows, bracket, timing, compile_s, trials, total, quick):
     )
 
     md.append("## 3. Cost against scipy with finite differences\n")
+    timing = cost["timing"]
     md.append(
-        "Same scenes, sigma = 0.01, same start and the same log coordinates. `fit_lens` from one start (`starts=1`) and with its default 4 starts, "
-        "wall time of the whole call after a warm-up call (compilation excluded; includes input checks and the statistics). "
-        "scipy: `least_squares(method='trf', jac='2-point', xtol=ftol=gtol=1e-8)` on the jitted `jaxdof.render` (numpy in and out), its renders counted. "
-        "`fit_lens` costs per step one render and its Jacobian by forward mode (one JVP per free parameter).\n"
+        f"Measured {cost['date']} (load average {cost['load']:.1f} on the 2 shared cores at the end of this section). "
+        "float64, sigma = 0.01, `max_radius=6`; the four scenes at 24 x 24 and at 96 x 96. Both solvers start from the same "
+        "wrong lens, fit the same target in the same log coordinates, float64, on the same jitted `jaxdof.render`. "
+        "`fit_lens` from one start (`starts=1`; default LM, `rtol=atol=1e-8`) and with its default 4 starts (24 x 24 only): wall "
+        "time of the whole call (input checks, solve, statistics, message), after a warm-up call, so compilation is excluded. "
+        "scipy: `least_squares(method='trf', jac='2-point', xtol=ftol=gtol=1e-8)`, numpy in and out, its renders counted. "
+        f"Each number is the median of {cost['reps']} interleaved calls per trial, then the median over the trials; "
+        "CPU is process CPU time (all threads). One LM step of `fit_lens` evaluates one render and its Jacobian with respect "
+        "to the two free parameters by forward mode (two JVPs sharing the render), built once per point; the table below gives "
+        "the cost of each in isolation (`jax.jacfwd` of the render, the same work).\n"
     )
     md.append(
-        "| scene | fit_lens 1 start (s) | fit_lens 4 starts (s) | LM steps | scipy (s) | scipy renders | scipy / fit_lens(1) | |scipy - ours| / stderr (N, d_f) |"
+        "| size | render wall (ms) | CPU (ms) | Jacobian, 2 parameters, wall (ms) | CPU (ms) | Jacobian / render (CPU) |"
     )
-    md.append("|---|---|---|---|---|---|---|---|")
-    for name in dict.fromkeys(t["scene"] for t in timing):
-        ts = [t for t in timing if t["scene"] == name]
-        m = lambda k, ts=ts: float(np.median([t[k] for t in ts]))  # noqa: E731
+    md.append("|---|---|---|---|---|---|")
+    for size, u in cost["unit"].items():
+        (rw, rc), (jw, jc) = u["render"], u["jacobian"]
         md.append(
-            f"| {name} | {m('ours1'):.3f} | {m('ours4'):.3f} | {m('steps'):g} | {m('scipy'):.3f} | {m('evals'):g} | {m('scipy') / m('ours1'):.2f} | {m('dN'):.2g}, {m('dD'):.2g} |"
+            f"| {size} x {size} | {rw * 1e3:.2f} | {rc * 1e3:.2f} | {jw * 1e3:.2f} | {jc * 1e3:.2f} | {jc / rc:.1f} |"
         )
-    speed = np.median([t["scipy"] / t["ours1"] for t in timing])
+    md.append("")
     md.append(
-        f"\nMedian speed ratio scipy / fit_lens (one start): {speed:.2f}x over {len(timing)} fits.\n"
+        "| size | scene | fit_lens 1 start (s) | CPU (s) | fit_lens 4 starts (s) | LM steps | scipy (s) | scipy CPU (s) | scipy renders | scipy / fit_lens(1) wall | CPU | |scipy - ours| / stderr (N, d_f) |"
     )
-
+    md.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    speeds = {}
+    for size in dict.fromkeys(t["size"] for t in timing):
+        for name in dict.fromkeys(t["scene"] for t in timing if t["size"] == size):
+            ts = [t for t in timing if t["scene"] == name and t["size"] == size]
+            m = lambda k, ts=ts: float(np.median([t[k] for t in ts]))  # noqa: E731
+            four = f"{m('ours4'):.4f}" if size == H else "-"
+            md.append(
+                f"| {size} | {name} | {m('ours1'):.4f} | {m('cpu1'):.4f} | {four} | {m('steps'):g} | {m('scipy'):.4f} | {m('scipy_cpu'):.4f} | {m('evals'):g} | {m('scipy') / m('ours1'):.2f} | {m('scipy_cpu') / m('cpu1'):.2f} | {m('dN'):.2g}, {m('dD'):.2g} |"
+            )
+        sel = [t for t in timing if t["size"] == size]
+        speeds[size] = (
+            float(np.median([t["scipy"] / t["ours1"] for t in sel])),
+            float(np.median([t["scipy_cpu"] / t["cpu1"] for t in sel])),
+            len(sel),
+        )
+    md.append("")
+    for size, (sw, sc_, k) in speeds.items():
+        md.append(
+            f"- {size} x {size}: median speed ratio scipy / fit_lens (one start) {sw:.2f}x wall, {sc_:.2f}x CPU, over {k} fits."
+        )
+    for size in speeds:
+        sel = [t for t in timing if t["size"] == size]
+        step = float(np.median([t["ours1"] / t["steps"] for t in sel]))
+        per_render = float(np.median([t["scipy"] / t["evals"] for t in sel]))
+        ratio = float(np.median([3 * t["steps"] / t["evals"] for t in sel]))
+        md.append(
+            f"- {size} x {size}: fit_lens {step * 1e3:.2f} ms per LM step (a render and its Jacobian), scipy "
+            f"{per_render * 1e3:.2f} ms per render (its own Python and numpy included); LM steps per scipy "
+            f"Jacobian (renders / 3) median {ratio:.2f}."
+        )
+    if "outside" in cost:
+        o = cost["outside"]
+        md.append(
+            f"- Outside its two compiled calls (input checks in numpy, set-up, the message), a warm 24 x 24 call "
+            f"spends {o['outside'] * 1e3:.1f} ms of {o['total'] * 1e3:.1f} ms (median of 15)."
+        )
+    md.append("")
+    md.append(
+        "Why the ratio is not 10x. A warm call is now almost all solve: two compiled calls, no re-tracing "
+        "(checked in `tests/test_fit.py`). Each LM step needs the Jacobian, which forward mode builds from the render "
+        "and one tangent pass per free parameter; for the soft filter the two tangent passes cost a few renders "
+        "(Jacobian / render in the first table), about what scipy's 2-point Jacobian costs (two extra renders), and the "
+        "LM takes as many or somewhat more steps than trf takes Jacobians (the last ratio). So at 24 x 24 fit_lens gains only "
+        "scipy's per-render Python/numpy overhead, and at 96 x 96, where the renders dominate, the finite differences "
+        "are cheaper. Getting to 10x would need a tangent pass of the render far cheaper than a render (filter code), "
+        "or several times fewer full-resolution iterations (e.g. coarse-to-fine); neither is done here.\n"
+    )
+    speed = speeds[H][0]
+    speed_big = speeds[max(speeds)][0]
     md.append("## Conclusions\n")
-    claims = conclusions(rows, bracket, timing, ratios, srat, speed)
+    claims = conclusions(rows, bracket, timing, ratios, srat, speed, speed_big)
     md += [f"- {c}" for c in claims]
     path = out / f"recover{suffix}.md"
     path.write_text("\n".join(md) + "\n")
@@ -453,7 +614,7 @@ def write(rows, bracket, timing, compile_s, trials, total, quick):
     print(f"wrote {path}")
 
 
-def conclusions(rows, bracket, timing, ratios, srat, speed):
+def conclusions(rows, bracket, timing, ratios, srat, speed, speed_big):
     claims = []
     noise_free = [r for r in rows if r["sigma"] == 0]
     worst = max(r["max_rel"].max() for r in noise_free)
@@ -494,8 +655,8 @@ def conclusions(rows, bracket, timing, ratios, srat, speed):
     ) < 3 * n_se / np.sqrt(k), (f_mean, n_mean)
     assert bracket[:, 4].all(), "a bracket fit failed"
     claims.append(
-        f"Against scipy's finite-difference least squares on the same jitted render, the wall-time ratio scipy / fit_lens (one start) is {speed:.2f} (median; above 1 means fit_lens is faster; "
-        f"{'meets' if speed >= 10 else 'does not meet'} the issue's 10x goal on this machine), and lands within "
+        f"Against scipy's finite-difference least squares on the same jitted render, the wall-time ratio scipy / fit_lens (one start) is {speed:.2f} at 24 x 24 and {speed_big:.2f} at 96 x 96 "
+        f"(medians; above 1 means fit_lens is faster; {'meets' if min(speed, speed_big) >= 10 else 'does not meet'} the issue's 10x goal on this machine), and fit_lens lands within "
         f"{max(max(t['dN'], t['dD']) for t in timing):.2g} standard errors of scipy's answer."
     )
     return claims
