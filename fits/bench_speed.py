@@ -52,6 +52,17 @@ from bench_filter import machine_info  # noqa: E402
 RESULTS = pathlib.Path(__file__).parent / "results"
 
 
+def timed_in_turns(compiled: dict, args: tuple, repeats: int) -> dict[str, list]:
+    """`{name: [(wall s, CPU s), ...]}`: each compiled function called once per round, in turns."""
+    runs = {name: [] for name in compiled}
+    for _ in range(repeats):
+        for name, fn in compiled.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            jax.block_until_ready(fn(*args))
+            runs[name].append((time.perf_counter() - w0, time.process_time() - c0))
+    return runs
+
+
 def program_bytes(compiled) -> int:
     m = compiled.memory_analysis()
     return (
@@ -80,12 +91,7 @@ def measure(size: int, max_radius: float, repeats: int, *, run: bool = True) -> 
         return res
     for fn in compiled.values():
         jax.block_until_ready(fn(image, radius))
-    runs = {name: [] for name in compiled}
-    for _ in range(repeats):
-        for name, fn in compiled.items():
-            w0, c0 = time.perf_counter(), time.process_time()
-            jax.block_until_ready(fn(image, radius))
-            runs[name].append((time.perf_counter() - w0, time.process_time() - c0))
+    runs = timed_in_turns(compiled, (image, radius), repeats)
     mpix = size * size / 1e6
     for name, rs in runs.items():
         res[f"wall_{name}"] = statistics.median(r[0] for r in rs) / mpix
@@ -116,12 +122,7 @@ def measure_paths(size: int, max_radius: float, repeats: int) -> dict:
     res["max_rel_diff_grad"] = max(
         float(jnp.max(jnp.abs(a - b)) / jnp.max(jnp.abs(a))) for a, b in zip(gd, gs)
     )
-    runs = {name: [] for name in compiled}
-    for _ in range(repeats):
-        for name, fn in compiled.items():
-            w0, c0 = time.perf_counter(), time.process_time()
-            jax.block_until_ready(fn(image, radius))
-            runs[name].append((time.perf_counter() - w0, time.process_time() - c0))
+    runs = timed_in_turns(compiled, (image, radius), repeats)
     for name, rs in runs.items():
         res[f"wall_{name}"] = statistics.median(r[0] for r in rs)
         res[f"cpu_{name}"] = statistics.median(r[1] for r in rs)
