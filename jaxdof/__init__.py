@@ -2,6 +2,7 @@ import importlib.metadata
 
 from ._batch import (
     batch_mesh as batch_mesh,
+    fit_batch as fit_batch,
     render_batch as render_batch,
     shard_batch as shard_batch,
 )

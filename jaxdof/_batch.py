@@ -1,8 +1,9 @@
 """Many scenes at once, sharded over devices along the batch axis (`jax.sharding`).
 
-The batch axis is the one that parallelises without communication: every scene is rendered
-independently. `render_batch` places the batch on a 1-D device `Mesh` with a
-`NamedSharding(mesh, PartitionSpec("batch"))` and runs one `jit(vmap(render))`; XLA's SPMD
+The batch axis is the one that parallelises without communication: every scene is rendered (and
+fitted) independently. `render_batch` and `fit_batch` place the batch on a 1-D device `Mesh` with a
+`NamedSharding(mesh, PartitionSpec("batch"))` and run one `jit(vmap(render))` or
+`jit(vmap(solve_lens))`; XLA's SPMD
 partitioner then keeps each device on its own slice. The same code runs on one CPU, on several GPUs,
 or on several hosts after `jax.distributed.initialize()` (`jax.devices()` then lists every host's
 devices). To try several devices on one CPU, set `XLA_FLAGS=--xla_force_host_platform_device_count=4`
@@ -13,12 +14,14 @@ from __future__ import annotations
 
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._filters.common import is_concrete
+from ._fit import FitResult, solve_lens
 from ._lens import ThinLens, coc_radius
 from ._render import render
 
@@ -126,3 +129,85 @@ def render_batch(
     fn = jax.jit(jax.vmap(one, in_axes=(0, 0, lens_axes)), out_shardings=out_sharding)
     out = fn(images, depths, lens)
     return out[:b] if padded > b else out
+
+
+def _pad_batch(tree: Any, b: int, padded: int) -> Any:
+    """Repeat the last scene of every leaf up to `padded` (valid inputs, dropped afterwards)."""
+
+    def pad(x):
+        x = jnp.asarray(x)
+        return jnp.concatenate([x, jnp.repeat(x[-1:], padded - b, axis=0)]) if padded > b else x
+
+    return jax.tree_util.tree_map(pad, tree)
+
+
+def fit_batch(
+    images,
+    depths,
+    targets,
+    init: ThinLens,
+    *,
+    max_radius: float,
+    mesh: Mesh | None = None,
+    **solve_kwargs,
+) -> FitResult:
+    """Fit many independent scenes at once, sharded over the devices of `mesh` along the batch axis.
+
+    One `jit(vmap(jaxdof.solve_lens))`: one compilation for the batch, each device solving its own
+    slice of scenes (no communication). On one device this is exactly `jax.vmap(solve_lens)`.
+
+    **Arguments:**
+
+    - `images`: `(B, H, W)` or `(B, H, W, C)` all-in-focus linear-light images.
+    - `depths`: `(B, H, W)` z-depths (m).
+    - `targets`: the photos, `(B, H, W[, C])` (one per scene) or `(B, T, H, W[, C])` (a bracket
+      of `T` per scene).
+    - `init`: the start, one `ThinLens` for every scene (scalar fields) or one per scene (fields
+      of shape `(B,)`).
+    - `max_radius`: the filter window in pixels (static, shared by the batch).
+    - `mesh`: a 1-D mesh from `batch_mesh` (default: all devices).
+    - `solve_kwargs`: `free`, `shared`, `solver`, `max_steps`, `weight` (`(B, ...)`), `exposure`,
+      `method`, as in `solve_lens`.
+
+    **Returns:** a `FitResult` whose array fields have a leading batch axis `B` (read `.status` /
+    `.success` per scene, as with `solve_lens`; no multi-start and no message).
+    """
+    images, depths, targets = jnp.asarray(images), jnp.asarray(depths), jnp.asarray(targets)
+    b = images.shape[0]
+    if (
+        images.ndim not in (3, 4)
+        or depths.shape != images.shape[:3]
+        or targets.shape[0] != b
+        or targets.shape[-images.ndim + 1 :] != images.shape[1:]
+    ):
+        raise ValueError(
+            "fit_batch: images must be (B, H, W[, C]), depths (B, H, W) and targets "
+            "(B, [T,] H, W[, C]) with the same B, H, W[, C]; got images "
+            f"{images.shape}, depths {depths.shape}, targets {targets.shape}"
+        )
+    leaves = jax.tree_util.tree_leaves(init)
+    per_scene = any(jnp.ndim(x) > 0 for x in leaves)
+    if per_scene and any(jnp.shape(x) != (b,) for x in leaves):
+        raise ValueError(
+            f"fit_batch: every field of init must be a scalar (one start for all scenes) or have "
+            f"shape ({b},) (one per scene); got {[jnp.shape(x) for x in leaves]}"
+        )
+    weight = solve_kwargs.pop("weight", None)
+    mesh = batch_mesh() if mesh is None else mesh
+    n = mesh.devices.size
+    padded = -(-b // n) * n
+    batched = (images, depths, targets, weight, init if per_scene else None)
+    batched = shard_batch(_pad_batch(batched, b, padded), mesh)
+    images, depths, targets, weight, inits = batched
+
+    def one(image, depth, target, weight_i, init_i):
+        start = init if init_i is None else init_i
+        return solve_lens(
+            image, depth, target, start, max_radius=max_radius, weight=weight_i, **solve_kwargs
+        )
+
+    axes = (0, 0, 0, None if weight is None else 0, 0 if per_scene else None)
+    result = eqx.filter_jit(eqx.filter_vmap(one, in_axes=axes))(
+        images, depths, targets, weight, inits
+    )
+    return jax.tree_util.tree_map(lambda x: x[:b], result) if padded > b else result
