@@ -56,6 +56,18 @@ def shard_batch(tree: Any, mesh: Mesh) -> Any:
     return jax.tree_util.tree_map(put, tree)
 
 
+def _lens_per_scene(lens: ThinLens, b: int, what: str, one: str) -> bool:
+    """Whether `lens` has one value per scene (fields `(b,)`) rather than one for all (scalars)."""
+    leaves = jax.tree_util.tree_leaves(lens)
+    per_scene = any(jnp.ndim(x) > 0 for x in leaves)
+    if per_scene and any(jnp.shape(x) != (b,) for x in leaves):
+        raise ValueError(
+            f"{what} must be a scalar ({one} for all scenes) or have shape ({b},) (one per "
+            f"scene); got {[jnp.shape(x) for x in leaves]}"
+        )
+    return per_scene
+
+
 def render_batch(
     images,
     depths,
@@ -90,13 +102,7 @@ def render_batch(
             f"same B, H, W; got images {images.shape} and depths {depths.shape}"
         )
     b = images.shape[0]
-    leaves = jax.tree_util.tree_leaves(lens)
-    per_scene = any(jnp.ndim(x) > 0 for x in leaves)
-    if per_scene and any(jnp.shape(x) != (b,) for x in leaves):
-        raise ValueError(
-            f"render_batch: every lens field must be a scalar (one lens for all scenes) or have "
-            f"shape ({b},) (one per scene); got {[jnp.shape(x) for x in leaves]}"
-        )
+    per_scene = _lens_per_scene(lens, b, "render_batch: every lens field", "one lens")
     if max_radius is None:
         if not is_concrete(depths, lens):
             raise ValueError(
@@ -185,13 +191,7 @@ def fit_batch(
             "(B, [T,] H, W[, C]) with the same B, H, W[, C]; got images "
             f"{images.shape}, depths {depths.shape}, targets {targets.shape}"
         )
-    leaves = jax.tree_util.tree_leaves(init)
-    per_scene = any(jnp.ndim(x) > 0 for x in leaves)
-    if per_scene and any(jnp.shape(x) != (b,) for x in leaves):
-        raise ValueError(
-            f"fit_batch: every field of init must be a scalar (one start for all scenes) or have "
-            f"shape ({b},) (one per scene); got {[jnp.shape(x) for x in leaves]}"
-        )
+    per_scene = _lens_per_scene(init, b, "fit_batch: every field of init", "one start")
     weight = solve_kwargs.pop("weight", None)
     mesh = batch_mesh() if mesh is None else mesh
     n = mesh.devices.size

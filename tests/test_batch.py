@@ -59,15 +59,19 @@ SCRIPT = textwrap.dedent(
 )
 
 
-def test_sharded_render_matches_single_device():
+def _run_on_four_cpu_devices(script: str) -> None:
     env = dict(
         os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
     )
     proc = subprocess.run(
-        [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=600
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert proc.stdout.strip().endswith("OK")
+
+
+def test_sharded_render_matches_single_device():
+    _run_on_four_cpu_devices(SCRIPT)
 
 
 FIT_SCRIPT = textwrap.dedent(
@@ -114,14 +118,7 @@ FIT_SCRIPT = textwrap.dedent(
 
 
 def test_sharded_fit_matches_single_device():
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", JAX_PLATFORMS="cpu"
-    )
-    proc = subprocess.run(
-        [sys.executable, "-c", FIT_SCRIPT], env=env, capture_output=True, text=True, timeout=900
-    )
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert proc.stdout.strip().endswith("OK")
+    _run_on_four_cpu_devices(FIT_SCRIPT)
 
 
 def test_bad_batches_are_rejected():
