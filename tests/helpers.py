@@ -1,5 +1,6 @@
 """Shared references and scenes for the tests: slow, obviously-correct float64 numpy code."""
 
+import jax.random as jr
 import mpmath
 import numpy as np
 
@@ -58,3 +59,16 @@ def step_scene(h: int = 24, w: int = 28, seed: int = 0):
     radius = np.where(np.arange(w)[None, :] < w // 2, 0.0, 7.3) + np.zeros((h, 1))
     radius[h // 2 :, :] = np.linspace(0.0, 20.0, w)[None, :]
     return image, radius
+
+
+def method_kwargs(method):
+    """Extra keywords a `coc_filter` method needs to run at all (a key for the random ones)."""
+    from jaxdof import coc_filter
+
+    try:
+        coc_filter(np.ones((2, 2)), np.ones((2, 2)), method=method, max_radius=1.0)
+    except ValueError as e:
+        if "key" in str(e):
+            return {"key": jr.PRNGKey(0)}
+        raise
+    return {}

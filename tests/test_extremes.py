@@ -15,7 +15,6 @@ import math
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import jax.random as jr
 import numpy as np
 import pytest
 
@@ -29,6 +28,8 @@ from jaxdof import (
     signed_coc_radius,
 )
 
+from .helpers import method_kwargs
+
 
 _coc_filter_module = importlib.import_module("jaxdof._filters.coc_filter")
 METHODS = tuple(_coc_filter_module.METHODS)
@@ -38,16 +39,6 @@ F = 0.05
 
 def _finite(tree) -> bool:
     return all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree_util.tree_leaves(tree))
-
-
-def _method_kwargs(method):
-    try:
-        coc_filter(np.ones((2, 2)), np.ones((2, 2)), method=method, max_radius=1.0)
-    except ValueError as e:
-        if "key" in str(e):
-            return {"key": jr.PRNGKey(0)}
-        raise
-    return {}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -154,7 +145,7 @@ def test_grid_overlap_float32(float32):
 
 
 def _grid_filter_check(dtype, method):
-    kw = _method_kwargs(method)
+    kw = method_kwargs(method)
     rng = np.random.default_rng(1)
     image = jnp.asarray(rng.uniform(size=(3, 4)), dtype)
     radius = jnp.asarray(np.array(RADII, np.float64).reshape(3, 4), dtype)
@@ -295,7 +286,7 @@ def test_jit_float32_render_raises(float32):
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("bad", [-1.0, np.nan])
 def test_invalid_radius(method, bad):
-    kw = _method_kwargs(method)
+    kw = method_kwargs(method)
     radius = np.full((3, 4), 1.5)
     radius[2, 1] = bad
     with pytest.raises(ValueError, match=">= 0"):

@@ -19,7 +19,6 @@ import math
 
 import jax
 import jax.numpy as jnp
-import jax.random as jr
 import numpy as np
 import pytest
 from jax.test_util import check_grads
@@ -33,6 +32,8 @@ from jaxdof import (
     render,
     signed_coc_radius,
 )
+
+from .helpers import method_kwargs
 
 
 # The issue's target: float64 gradients agree with finite differences to 1e-6 relative.
@@ -271,17 +272,6 @@ METHODS = tuple(_coc_filter_module.METHODS)
 # gradient shared over a level) are checked in the image only.
 _DIFF = getattr(_coc_filter_module, "DIFFERENTIABLE_IN_RADIUS", {})
 RADIUS_METHODS = tuple(m for m in METHODS if _DIFF.get(m, m == "soft"))
-
-
-def method_kwargs(method):
-    """Extra keywords a method needs to run at all (a key for the random ones)."""
-    try:
-        coc_filter(np.ones((2, 2)), np.ones((2, 2)), method=method, max_radius=1.0)
-    except ValueError as e:
-        if "key" in str(e):
-            return {"key": jr.PRNGKey(0)}
-        raise
-    return {}
 
 
 MAXR = 2.5

@@ -7,13 +7,14 @@ All in float64; tolerances are float64 round-off of sums of a few hundred terms 
 
 import importlib
 
-import jax.random as jr
 import numpy as np
 import pytest
 from hypothesis import Phase, given, settings, strategies as st
 from hypothesis.extra.numpy import arrays
 
 from jaxdof import ThinLens, coc_filter, render
+
+from .helpers import method_kwargs
 
 
 # no shrinking: on a failure the first counterexample is reported at once (shrinking a filter
@@ -41,18 +42,8 @@ DETERMINISTIC = tuple(m for m in METHODS if m not in RANDOM)
 TOL = 1e-12
 
 
-def _kwargs(method):
-    try:
-        coc_filter(np.ones((2, 2)), np.ones((2, 2)), method=method, max_radius=1.0)
-    except ValueError as e:
-        if "key" in str(e):
-            return {"key": jr.PRNGKey(0)}
-        raise
-    return {}
-
-
 def _filter(method, image, radius, max_radius=3.0):
-    out = coc_filter(image, radius, method=method, max_radius=max_radius, **_kwargs(method))
+    out = coc_filter(image, radius, method=method, max_radius=max_radius, **method_kwargs(method))
     return np.asarray(out)
 
 
@@ -139,7 +130,7 @@ def _spread(method, depth):
             LENS,
             method=method,
             max_radius=MAXR,
-            **_kwargs(method),
+            **method_kwargs(method),
         )
     )
     yy, xx = np.mgrid[0:SIZE, 0:SIZE] - c
