@@ -15,14 +15,12 @@ constant weights plus one table read per class. Used by `method="auto"` on a con
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 from jaxtyping import Array, Float
 
 from .common import tap_offsets
-from .soft import _offset_geometry, _pad, _shift_sum, mirror_classes, tap_weight
+from .soft import _pad, _scan_classes, _shift_sum, tap_weight
 
 
 def radius_levels(radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -40,21 +38,14 @@ def tabulated_filter(
     index: np.ndarray,
 ) -> Float[Array, "h w c"]:
     """The soft scatter of `image` for the radius map `levels[index]` (concrete, clamped)."""
-    dtype = image.dtype
     offsets = tap_offsets(max_radius)
     pad = int(np.abs(offsets).max()) if offsets.size else 0
-    rho = jnp.asarray(levels, dtype)[None, :]
+    rho = jnp.asarray(levels, image.dtype)
     idx = jnp.asarray(index, jnp.int32)
-    acc = jnp.zeros_like(image)
-    for k, (canonical, mirrors) in mirror_classes(offsets).items():
-        geometry = _offset_geometry(canonical, dtype)
-        table = tap_weight(*(g[:, None] for g in geometry), rho)  # (offsets, L)
 
-        def step(acc, xs, k=k):
-            mirrors, row = xs
-            weighted = image * jnp.take(row, idx)[..., None]
-            return acc + _shift_sum(_pad(weighted, pad), mirrors, k, pad, -1, image.shape), None
+    def body(k, acc, mirrors, geom):
+        row = tap_weight(*geom, rho)  # this offset's weight at each of the L levels
+        weighted = image * jnp.take(row, idx)[..., None]
+        return acc + _shift_sum(_pad(weighted, pad), mirrors, k, pad, -1, image.shape)
 
-        step = jax.checkpoint(step, prevent_cse=False)
-        acc, _ = lax.scan(step, acc, (jnp.asarray(mirrors, jnp.int32), table))
-    return acc
+    return _scan_classes(offsets, image.dtype, jnp.zeros_like(image), body)
