@@ -33,6 +33,7 @@ from functools import partial
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax.custom_derivatives import SymbolicZero
@@ -332,7 +333,8 @@ class FitResult(eqx.Module):
     - `status`: an integer code (0 converged; see `message`).
     - `success`: `True` when the fit converged to a determined, unambiguous lens.
     - `message`: what happened, in words.
-    - `max_radius`: the filter window (pixels) the fit used.
+    - `max_radius`: the filter window (pixels) the fit used (at full resolution).
+    - `levels`: pyramid levels `fit_lens` solved on (1: full resolution only; see its `pyramid`).
 
     `lens` is the first target's lens; `summary()` formats everything as a table.
     """
@@ -351,6 +353,7 @@ class FitResult(eqx.Module):
     names: tuple[str, ...] = eqx.field(static=True)
     message: str = eqx.field(static=True, default="")
     max_radius: float = eqx.field(static=True, default=0.0)
+    levels: int = eqx.field(static=True, default=1)
 
     @property
     def lens(self) -> ThinLens:
@@ -456,18 +459,43 @@ def _solve(model: _Model, solver, y0, args, max_steps: int):
         model, solver, y0.astype(jnp.result_type(float)), args, max_steps=max_steps, throw=False
     )
     y = sol.value.astype(y0.dtype)
-    residual = model(y, args)  # in the data's dtype again, since `y` is
+    dtype = args[2].dtype  # the data's
+    kept = _solver_point(sol)
+    if kept is None:
+        residual, jac = model(y, args), None  # in the data's dtype again, since `y` is
+    else:
+        residual, jac = kept[0].astype(dtype), kept[1].astype(dtype)
     ok = sol.result == optx.RESULTS.successful
     maxed = sol.result == optx.RESULTS.nonlinear_max_steps_reached
     status = jnp.where(ok, CONVERGED, jnp.where(maxed, MAX_STEPS, SOLVER_FAILED))
     status = jnp.where(ok & ~jnp.all(jnp.isfinite(residual)), SOLVER_FAILED, status)
-    return y, status, sol.stats["num_steps"], residual, model.theta(y, args[-1])
+    return y, status, sol.stats["num_steps"], residual, model.theta(y, args[-1]), jac
 
 
-def _jacobians(model: _Model, y, args):
-    """d residual / d y `(n, P)` by forward mode (P passes; few parameters, many residuals) and
-    d theta / d y `(P, P)`."""
-    return jax.jacfwd(model)(y, args), jax.jacfwd(model.theta)(y, args[-1])
+def _solver_point(sol):
+    """The residual and Jacobian at the solution, as the solver last evaluated them, or None.
+
+    The Gauss-Newton family (Levenberg-Marquardt, Dogleg, Gauss-Newton) keeps the residual and
+    the linearisation at its last accepted point, which is the returned solution; with the JVP
+    rule of `_residuals` that linearisation is the materialised Jacobian times a vector, so reading
+    it back as a matrix costs `P` small products instead of a render and `P` tangent passes (a
+    tenth to a third of a whole fit, depending on its number of steps). Other solvers: None, and
+    the caller evaluates both.
+    """
+    f_info = getattr(sol.state, "f_info", None)
+    residual = getattr(f_info, "residual", None)
+    op = getattr(f_info, "jac", None)
+    if not isinstance(op, lx.AbstractLinearOperator) or not isinstance(residual, jax.Array):
+        return None
+    return residual, op.as_matrix()
+
+
+def _jacobians(model: _Model, y, args, jac=None):
+    """d residual / d y `(n, P)` by forward mode (P passes; few parameters, many residuals),
+    unless given, and d theta / d y `(P, P)`."""
+    if jac is None:
+        jac = jax.jacfwd(model)(y, args).astype(args[2].dtype)
+    return jac, jax.jacfwd(model.theta)(y, args[-1])
 
 
 def _n_residuals(targets, sqrt_w):
@@ -483,7 +511,7 @@ def _fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     loss), and evaluates the Jacobians there. The free set is data (`args[-1]`, the layout), not
     part of the compiled code; `_finish` (small, compiled per free set) does the statistics.
     """
-    ys, status, num_steps, residual, theta = eqx.filter_vmap(
+    ys, status, num_steps, residual, theta, jacs = eqx.filter_vmap(
         _solve, in_axes=(None, None, 0, None, None)
     )(model, solver, y0s, args, max_steps)
     loss = 0.5 * jnp.sum(jnp.square(residual.astype(jnp.result_type(float))), axis=-1)
@@ -491,7 +519,7 @@ def _fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     converged = status == CONVERGED
     best = jnp.lexsort((loss, (~converged).astype(jnp.int32)))[0]
     y = ys[best]
-    jac, g = _jacobians(model, y, args)
+    jac, g = _jacobians(model, y, args, None if jacs is None else jacs[best])
     # A non-finite Jacobian at the solution makes its statistics meaningless: a failed solve.
     status_best = jnp.where(jnp.all(jnp.isfinite(jac)), status[best], SOLVER_FAILED)
     solution = (y, status_best, num_steps[best], residual[best], theta[best], jac, g)
@@ -527,8 +555,8 @@ def _finish(model: _Model, solution, args, spec: _Spec, single: bool):
 def _solve_one(model: _Model, solver, y0, args, max_steps: int, spec: _Spec, single: bool):
     """`solve_lens`'s numerics: one solve, its Jacobian, statistics and status (one compiled call
     when `solve_lens` runs eagerly; inlined into the caller's trace under jit/vmap)."""
-    y, status, num_steps, residual, theta = _solve(model, solver, y0, args, max_steps)
-    jac, g = _jacobians(model, y, args)
+    y, status, num_steps, residual, theta, jac = _solve(model, solver, y0, args, max_steps)
+    jac, g = _jacobians(model, y, args, jac)
     status = jnp.where((status == CONVERGED) & ~jnp.all(jnp.isfinite(jac)), SOLVER_FAILED, status)
     _, _, targets, sqrt_w, layout = args
     stats = _statistics(residual, jac, g, theta, _n_residuals(targets, sqrt_w), spec.used)
@@ -755,6 +783,143 @@ def _window(radius: float, cap: float) -> float:
     return float(min(w, max(cap, 2.0)))
 
 
+# Coarse-to-fine. The automatic pyramid stops coarsening before the image's shorter side drops
+# under `_PYRAMID_MIN_SIZE` pixels (a 24 x 24 image still constrains two parameters with hundreds
+# of residuals, and its window of a few pixels is not most of the image) or before the init's
+# largest circle drops under `_PYRAMID_MIN_CIRCLE` pixels: circles under half a pixel render as the
+# identity (the dead zone, zero gradient), and the init may overestimate K by 2x, so the coarsest
+# level keeps the init's largest circle at twice the dead zone's edge. An explicit `pyramid` may go
+# down to `_PYRAMID_FLOOR` pixels.
+_PYRAMID_MIN_SIZE = 24
+_PYRAMID_MIN_CIRCLE = 1.0
+_PYRAMID_FLOOR = 8
+# An alternative coarse solution is refined at the finer levels too (so that the near/far test
+# sees it at full resolution) when its coarse loss is within this factor of the best one's: coarse
+# losses carry the downsampling's model error, so only a generous margin keeps true ties.
+_PYRAMID_TIE = 2.0
+# Tolerance of the default solver on the coarse levels (see `fit_lens`).
+_COARSE_TOL = 1e-3
+
+
+def _auto_levels(shape: tuple[int, int], r_init: float) -> int:
+    """Number of pyramid levels (1: full resolution only) for an image of `shape` whose init lens
+    makes circles up to `r_init` pixels: the most halvings that keep the coarsest image at least
+    `_PYRAMID_MIN_SIZE` px on its shorter side and the init's largest circle `_PYRAMID_MIN_CIRCLE` px."""
+    levels = 1
+    side = min(shape)
+    while side // 2 >= _PYRAMID_MIN_SIZE and r_init / 2**levels >= _PYRAMID_MIN_CIRCLE:
+        side //= 2
+        levels += 1
+    return levels
+
+
+def _check_pyramid(pyramid, shape: tuple[int, int]) -> int | None:
+    """Validate an explicit `pyramid` (number of levels); `None` stays `None` (automatic)."""
+    if pyramid is None:
+        return None
+    if isinstance(pyramid, bool) or not isinstance(pyramid, (int, np.integer)) or pyramid < 0:
+        raise ValueError(
+            f"pyramid must be None (automatic), 0 or 1 (full resolution only) or the number of "
+            f"levels >= 2 as a Python int, got {pyramid!r}"
+        )
+    levels = max(int(pyramid), 1)
+    side = min(shape) // 2 ** (levels - 1)
+    if side < _PYRAMID_FLOOR:
+        most = 1
+        while min(shape) // 2**most >= _PYRAMID_FLOOR:
+            most += 1
+        raise ValueError(
+            f"pyramid={pyramid} would shrink the {shape[0]} x {shape[1]} image to {side} px at its "
+            f"coarsest level (under {_PYRAMID_FLOOR} px); use at most pyramid={most}, or None to "
+            "choose automatically"
+        )
+    return levels
+
+
+def _box2(x: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
+    """2 x 2 box average over two adjacent `axes` (H, W) of `x`, dropping an odd last row/column."""
+    a, b = axes
+    h, w = x.shape[a] // 2 * 2, x.shape[b] // 2 * 2
+    x = x[(slice(None),) * a + (slice(0, h), slice(0, w))]
+    shape = x.shape[:a] + (h // 2, 2, w // 2, 2) + x.shape[b + 1 :]
+    return x.reshape(shape).mean(axis=(a + 1, a + 3))
+
+
+def _downsample(image, depth, targets, sqrt_w, base):
+    """One pyramid level down: halved images, depth and weights; the pixel pitch doubled.
+
+    - `image`, `targets`: 2 x 2 box averages, in linear light (what a sensor with twice the pitch
+      records, up to the blur/averaging order, which the finer levels correct).
+    - `depth`: averaged in inverse depth. The signed circle `K (1 - d_f / d)` is affine in `1 / d`,
+      so the coarse pixel gets exactly the mean signed circle of its four pixels (then halved, in
+      the doubled pitch's units); averaging depth itself would drag a near/far pair toward the
+      far side (1 m with infinity would average to infinity). `1 / inf = 0` is kept exact.
+    - weights: the harmonic mean of `w = sqrt_w^2`. For inverse-variance weights this is exactly
+      (up to a constant factor 4, irrelevant to the minimiser) the inverse variance of the
+      averaged target, and a masked pixel (w = 0), whose target value is arbitrary, masks the
+      coarse pixel it falls in instead of leaking into its average.
+    """
+    inv = _box2(1.0 / depth, (0, 1))  # depth > 0 everywhere (checked), inf -> 0
+    with np.errstate(divide="ignore"):
+        depth = (1.0 / inv).astype(depth.dtype)
+    w = sqrt_w * sqrt_w
+    with np.errstate(divide="ignore"):
+        inv_w = np.where(w > 0, 1.0 / np.where(w > 0, w, 1), np.inf)
+        mean_inv = _box2(inv_w, (1, 2))
+        w_c = np.where(np.isfinite(mean_inv), 1.0 / mean_inv, 0.0)
+    base = base.copy()
+    base[:, 3] = base[:, 3] * 2
+    return (
+        _box2(image, (0, 1)).astype(image.dtype),
+        depth,
+        _box2(targets, (1, 2)).astype(targets.dtype),
+        np.sqrt(w_c).astype(sqrt_w.dtype),
+        base,
+    )
+
+
+def _rows(theta: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Lens rows `(f, N, d_f, pitch)` `(T, 4)` from a solution's slot values `theta` (`_Model.theta`)
+    and the pitch of `base`."""
+    t = base.shape[0]
+    fields = np.asarray(theta, np.float64)[: 3 * t].reshape(3, t).T
+    return np.concatenate([fields, np.asarray(base, np.float64)[:, 3:4]], axis=1)
+
+
+def _next_starts(info, base: np.ndarray, y0s: np.ndarray, spec: _Spec):
+    """Starts for the next finer level from a coarse level's solve: its best solution, and the
+    lowest-loss converged solution at a distinct lens if its loss is within `_PYRAMID_TIE` of the
+    best (a possible near/far tie that only the full-resolution test can settle). A coarse level
+    whose best start did not converge hands on every start it was given, best solution first.
+
+    Returns the parameter vectors `(S', P)` and their lens rows `(S', T, 4)` (with the pitch of
+    `base`; `_max_coc` of them sizes the next window)."""
+    ys, loss, converged, best = info["ys"], info["loss"], info["converged"], int(info["best"])
+    theta = np.asarray(info["theta"], np.float64)
+    pick = [best]
+    if not converged[best]:
+        out = np.concatenate([ys[best][None], np.asarray(y0s)], axis=0)
+        th = np.concatenate([theta[best][None], theta], axis=0)
+        return out, np.stack([_rows(t, base) for t in th])
+    used = list(spec.used)
+    for i in np.argsort(loss):
+        if i == best or not converged[i]:
+            continue
+        far = np.any(np.abs(theta[i, used] - theta[best, used]) > 1e-3 * np.abs(theta[best, used]))
+        if far and loss[i] <= _PYRAMID_TIE * loss[best] + 1e-12 * (1 + loss[best]):
+            pick.append(int(i))
+        break  # only the lowest-loss alternative; a worse one is no tie
+    return ys[pick], np.stack([_rows(theta[i], base) for i in pick])
+
+
+def _with_verbose(solver, verbose, model: _Model, layout: _Layout, tag: str):
+    """`solver` with its `verbose` set as `fit_lens`'s `verbose` asks (unchanged for `False`)."""
+    if verbose is False:
+        return solver
+    fn = verbose if callable(verbose) else _verbose_printer(model, layout, tag)
+    return eqx.tree_at(lambda s: s.verbose, solver, fn)
+
+
 def _start_params(
     base: np.ndarray, free, n_starts: int, depth: np.ndarray, fcap: np.ndarray
 ) -> np.ndarray:
@@ -794,8 +959,9 @@ def _start_params(
     return np.stack(starts)
 
 
-def _verbose_printer(model: _Model, layout: _Layout):
-    """An optimistix `verbose` callable that prints step, loss and the current lens."""
+def _verbose_printer(model: _Model, layout: _Layout, level: str = ""):
+    """An optimistix `verbose` callable that prints step, loss and the current lens (prefixed by
+    `level`, the pyramid level, when coarse-to-fine)."""
     layout = jax.tree_util.tree_map(np.asarray, layout)
 
     def show(step, loss, y):
@@ -809,7 +975,7 @@ def _verbose_printer(model: _Model, layout: _Layout):
             for t, (f, n, d_f, _) in enumerate(rows):
                 tag = f"[{t}]" if model.n_targets > 1 else ""
                 parts.append(f"f{tag}={f * 1e3:.5g} mm N{tag}={n:.5g} d_f{tag}={d_f:.6g} m")
-            head = f"start {i} " if len(ys) > 1 else ""
+            head = level + (f"start {i} " if len(ys) > 1 else "")
             st = int(steps[min(i, len(steps) - 1)])
             ls = float(losses[min(i, len(losses) - 1)])
             print(f"{head}step {st}: loss {ls:.6g}  " + "  ".join(parts), flush=True)
@@ -886,6 +1052,7 @@ def fit_lens(
     starts: int | None = None,
     verbose: bool | Callable[..., None] = False,
     method: str = "soft",
+    pyramid: int | None = None,
 ) -> FitResult:
     r"""Recover lens parameters from defocused photos of a scene with known image and depth.
 
@@ -926,6 +1093,17 @@ def fit_lens(
       pairs, with `y` in the solver's coordinates).
     - `method`: the `jaxdof.render` method of the forward model (default `"soft"`, the exact
       coverage); it must be differentiable with respect to the radius.
+    - `pyramid`: coarse-to-fine levels (a Python int; `None`: automatic; `0` or `1`: full
+      resolution only). Level `l` halves the images `l` times (2 x 2 box averages in linear light;
+      depth averaged in inverse depth, weights by their harmonic mean) and doubles the pixel pitch
+      (so every circle, and the window, halves). The starts are solved on the coarsest level,
+      where a render costs `4^-l` of the full one; every finer level starts from the solution of
+      the level below, and the last is the full-resolution problem with the full tolerance, so
+      the result (lens, standard errors, statistics) is the full-resolution fit's, to solver
+      tolerance. `None` halves while the shorter side stays at least 24 px and the `init` lens's
+      largest circle at least 1 px (twice the half-pixel dead zone, where the render ignores the
+      lens). `FitResult.levels` says how many levels ran; `num_steps` counts full-resolution
+      steps only.
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `message`, when the best
     start did not converge, when distinct lenses fit equally well, when the circles outgrow a given
@@ -976,6 +1154,7 @@ def fit_lens(
         raise ValueError(f"starts must be >= 1, got {starts}")
     if verbose is not False and verbose is not True and not callable(verbose):
         raise ValueError(f"verbose must be a bool or a callable, got {verbose!r}")
+    levels = _check_pyramid(pyramid, image.shape[:2])
 
     dtype = image.dtype
     spec = _Spec(free, shared, n_t, bool(exposure))
@@ -986,9 +1165,14 @@ def fit_lens(
             "init.focal_length must be below the nearest depth (and the focus distance): "
             f"got {b[:, 0]} m against a bound of {fcap} m"
         )
+    coarse_solver = solver
     if solver is None:
         tol = _default_tol(dtype)
         solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+        # A coarse level's minimum differs from the full-resolution one by the downsampling's
+        # model error (measured ~1-3 % in N and d_f on the 96 x 96 scenes of fits/recover.py),
+        # so solving it tighter than that buys nothing: the finer levels move the answer anyway.
+        coarse_solver = optx.LevenbergMarquardt(rtol=_COARSE_TOL, atol=_COARSE_TOL)
     if verbose is not False and not hasattr(solver, "verbose"):
         raise ValueError(
             f"verbose needs a solver with a `verbose` field, got {type(solver).__name__}"
@@ -1003,17 +1187,46 @@ def fit_lens(
     else:
         window = _window(_max_coc(start_params, d), cap)
 
-    args = (image, depth, targets, sqrt_w, layout)
+    # Coarse-to-fine: the multi-start solve runs on the coarsest level, and each finer level
+    # starts from the level below's solution (and a near-tie alternative, if any); the last level
+    # is the full-resolution problem with the full tolerance, so the answer and its statistics are
+    # those of the full-resolution fit.
+    if levels is None:
+        levels = _auto_levels(image.shape[:2], _max_coc(start_params[:1], d))
+    pyr = [(image, depth, targets, sqrt_w, b)]
+    for _ in range(levels - 1):
+        pyr.append(_downsample(*pyr[-1]))
+    # Shapes and values stay numpy; the layout keeps the full-resolution bound on f at every
+    # level, so that a parameter vector means the same lens on every level.
+    layouts = [layout] + [dataclasses.replace(layout, base=lv[4].astype(dtype)) for lv in pyr[1:]]
+    y0s = _Model(n_t, window, bool(exposure), method, len(spec.used)).pack(
+        start_params.astype(dtype), layout
+    )
     notes = []
-    y0s = None
+    rows = start_params  # (S, T, 4) the current starts' lenses, at the full-resolution pitch
+    for lev in range(levels - 1, 0, -1):
+        im_l, dep_l, tg_l, sw_l, _ = pyr[lev]
+        d_l = np.asarray(dep_l, np.float64)
+        scale = 2.0**lev
+        if user_window:
+            win_l = window / scale  # the same extent in the scene as the full-resolution window
+        else:
+            rows_l = np.asarray(rows, np.float64).copy()
+            rows_l[..., 3] = rows_l[..., 3] * scale
+            win_l = _window(_max_coc(rows_l, d_l), float(max(dep_l.shape)))
+        model_l = _Model(n_t, win_l, bool(exposure), method, len(spec.used))
+        solver_l = _with_verbose(coarse_solver, verbose, model_l, layouts[lev], f"level {lev} ")
+        args_l = (im_l, dep_l, tg_l, sw_l, layouts[lev])
+        _, info_l = _fit_starts(model_l, solver_l, y0s, args_l, int(max_steps))
+        info_l = jax.device_get(info_l)
+        y0s, rows = _next_starts(info_l, b, y0s, spec)  # rows at full-resolution pitch
+
+    args = (image, depth, targets, sqrt_w, layout)
+    if levels > 1 and not user_window:
+        window = _window(_max_coc(rows, d), cap)
     for _ in range(3):
         model = _Model(n_t, window, bool(exposure), method, len(spec.used))
-        fit_solver = solver
-        if verbose is not False:
-            fn = verbose if callable(verbose) else _verbose_printer(model, layout)
-            fit_solver = eqx.tree_at(lambda s: s.verbose, solver, fn)
-        if y0s is None:
-            y0s = model.pack(start_params.astype(dtype), layout)
+        fit_solver = _with_verbose(solver, verbose, model, layout, "level 0 " if levels > 1 else "")
         solution, info = _fit_starts(model, fit_solver, y0s, args, int(max_steps))
         info = jax.device_get(info)  # a handful of small arrays, in one go
         loss, converged, best = info["loss"], info["converged"], int(info["best"])
@@ -1024,8 +1237,7 @@ def fit_lens(
             f"the window {window:g} px was too small for the fitted circles ({r_final:.3g} px); refitted"
         )
         window = _window(r_final, max(cap, 1.5 * r_final + 1.0))
-        ys = info["ys"]
-        y0s = np.concatenate([ys[best][None], ys], axis=0)
+        y0s = np.concatenate([info["ys"][best][None], info["ys"]], axis=0)
 
     result, stats = _finish(model, solution, args, spec, bool(single))
     info.update(jax.device_get(stats))
@@ -1070,9 +1282,13 @@ def fit_lens(
     if notes:
         msg += "; " + "; ".join(notes)
     if code == int(info["status"]):
-        return dataclasses.replace(result, message=msg)
+        return dataclasses.replace(result, message=msg, levels=levels)
     return dataclasses.replace(
-        result, status=jnp.asarray(code), success=jnp.asarray(code == CONVERGED), message=msg
+        result,
+        status=jnp.asarray(code),
+        success=jnp.asarray(code == CONVERGED),
+        message=msg,
+        levels=levels,
     )
 
 

@@ -386,3 +386,123 @@ def test_residual_jacobian_rule():
     check_grads(
         jax.jit(lambda im: model(y, (im, *args[1:]))), (image,), order=1, modes=("fwd", "rev")
     )
+
+
+# ----------------------------------------------------------------------------------- pyramid
+# The 32 x 32 scene with `pyramid=2` (one 16 x 16 level below full resolution): every pyramid fit
+# below shares these compiled pieces.
+PYRAMID = 2
+
+
+def test_pyramid_equals_full_resolution_fit():
+    """Coarse-to-fine ends with the full-resolution problem at the full tolerance: same lens,
+    standard errors and loss as the single-level fit, to solver tolerance (float64)."""
+    image, depth = scene()
+    rng = np.random.default_rng(7)
+    target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
+    init = wrong_init(("f_number", "focus_distance"))
+    kw = dict(max_radius=WINDOW, starts=STARTS)
+    flat = fit_lens(image, depth, target, init, pyramid=1, **kw)
+    pyr = fit_lens(image, depth, target, init, pyramid=PYRAMID, **kw)
+    assert bool(flat.success) and bool(pyr.success), (flat.message, pyr.message)
+    assert (flat.levels, pyr.levels) == (1, PYRAMID)
+    # Both stop when a step moves the log coordinates by under 1e-8 (relative, near the minimum
+    # where LM converges fast): 1e-7 leaves a decade for the last step's size.
+    for name in ("f_number", "focus_distance"):
+        np.testing.assert_allclose(
+            float(getattr(pyr.lens, name)), float(getattr(flat.lens, name)), rtol=1e-7
+        )
+        # The standard errors come from the Jacobian at those points: as close, to first order.
+        np.testing.assert_allclose(float(pyr.stderr[name]), float(flat.stderr[name]), rtol=1e-6)
+    # The loss is stationary at the minimum: second order in the 1e-8 step.
+    np.testing.assert_allclose(float(pyr.loss), float(flat.loss), rtol=1e-10)
+
+
+def test_pyramid_recovers_from_wrong_starts():
+    """Noise-free recovery through the pyramid, from the usual wrong starts (2x in K, 30% in d_f)."""
+    image, depth = scene()
+    true = lens()
+    target = render(image, depth, true)
+    free = ("f_number", "focus_distance")
+    res = fit_lens(
+        image, depth, target, wrong_init(free), max_radius=WINDOW, starts=STARTS, pyramid=PYRAMID
+    )
+    assert bool(res.success), res.message
+    assert res.levels == PYRAMID
+    err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
+    assert max(err.values()) < 1e-4, err  # the issue's float64 target
+
+
+def test_pyramid_reproducible_and_warm():
+    """A pyramid fit is bit-for-bit reproducible and a repeated call re-traces nothing."""
+    image, depth = scene()
+    rng = np.random.default_rng(3)
+    target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
+    init = wrong_init(("f_number", "focus_distance"))
+    kw = dict(max_radius=WINDOW, starts=STARTS, pyramid=PYRAMID)
+    a = fit_lens(image, depth, target, init, **kw)
+    compiled = (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size())
+    b = fit_lens(image, depth, target, init, **kw)
+    assert (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size()) == compiled
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert a.message == b.message and a.levels == b.levels == PYRAMID
+
+
+def test_pyramid_levels_chosen_as_documented():
+    """Automatic levels: halve while the shorter side stays >= 24 px and the init's largest circle
+    >= 1 px; the 32 x 32 test scene stays at full resolution."""
+    assert _fit._auto_levels((24, 24), 3.6) == 1  # 12 px would be under 24
+    assert _fit._auto_levels((96, 96), 3.6) == 2  # 48 px, 1.8 px circles; 0.9 px would be too few
+    assert _fit._auto_levels((96, 96), 8.0) == 3  # 48, 24 px: circles 4, 2 px
+    assert _fit._auto_levels((192, 400), 10.0) == 4  # shorter side 192 -> 96 -> 48 -> 24
+    assert _fit._auto_levels((47, 500), 50.0) == 1  # shorter side 47 -> 23
+    assert _fit._auto_levels((512, 512), 0.9) == 1  # the init is in the dead zone already
+    image, depth = scene()
+    res = fit_lens(image, depth, render(image, depth, lens()), lens(), max_radius=WINDOW,
+                   starts=STARTS)  # fmt: skip
+    assert res.levels == 1
+
+
+def test_pyramid_downsample():
+    """One level down: box-averaged images, depth averaged in inverse depth (the signed circle is
+    affine in 1/d, so the coarse pixel carries the mean circle), masked pixels mask their coarse
+    pixel, pitch doubled."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(size=(5, 6, 2))  # odd height: the last row is dropped
+    depth = rng.uniform(1.0, 4.0, size=(5, 6))
+    depth[0, 0] = np.inf
+    targets = rng.uniform(size=(2, 5, 6, 2))
+    sqrt_w = np.ones((2, 5, 6, 2))
+    sqrt_w[1, 3, 4, 0] = 0.0
+    base = np.array([[0.05, 2.0, 1.6, 1e-4]] * 2)
+    im, dep, tg, sw, b = _fit._downsample(image, depth, targets, sqrt_w, base)
+    assert im.shape == (2, 3, 2) and dep.shape == (2, 3) and tg.shape == sw.shape == (2, 2, 3, 2)
+    np.testing.assert_allclose(im[1, 2], image[2:4, 4:6].mean(axis=(0, 1)), rtol=1e-15)
+    np.testing.assert_allclose(tg[0, 0, 1], targets[0, 0:2, 2:4].mean(axis=(0, 1)), rtol=1e-15)
+    k, d_f = 5.0, 1.6  # signed circles K (1 - d_f / d): their mean is the coarse pixel's circle
+    signed = k * (1 - d_f / depth[:4])
+    mean = signed.reshape(2, 2, 3, 2).mean(axis=(1, 3))
+    np.testing.assert_allclose(k * (1 - d_f / dep), mean, rtol=1e-13)
+    assert np.isfinite(dep[0, 0])  # one pixel at infinity: 1/d averages to a finite depth
+    assert np.isinf(
+        _fit._downsample(image, np.full((5, 6), np.inf), targets, sqrt_w, base)[1]
+    ).all()
+    assert sw[1, 1, 2, 0] == 0.0 and sw[1, 1, 2, 1] == 1.0 and np.sum(sw == 0) == 1
+    np.testing.assert_array_equal(b[:, 3], 2e-4)
+
+
+@pytest.mark.parametrize(
+    "pyramid, match",
+    [
+        (-1, "pyramid must be None"),
+        (True, "pyramid must be None"),  # a bool is an int to Python, not a number of levels
+        (4, r"use at most pyramid=3"),  # 32 -> 16 -> 8 -> 4 px: under the 8 px floor
+    ],
+)
+def test_pyramid_bad_value(pyramid, match):
+    # (A non-int never gets this far under the tests' type-checking hook; without it, fit_lens
+    # raises the same ValueError for it.)
+    image, depth = scene()
+    with pytest.raises(ValueError, match=match):
+        fit_lens(image, depth, image, lens(), pyramid=pyramid)
