@@ -411,6 +411,25 @@ def footprint_render(image, depth, lens, *, method="soft", max_radius=None, norm
     )
 
 
+def prefilter_render(image, depth, lens, *, method="soft", max_radius=None, normalize=False):
+    """`jaxdof.render` of the footprint-corrected image `footprint_prefilter(image, radius)`."""
+    import jaxdof
+    from jaxdof._corrections import footprint_prefilter
+
+    radius = jaxdof.coc_radius(depth, lens).astype(image.dtype)
+    return jaxdof.coc_filter(
+        footprint_prefilter(image, radius),
+        radius,
+        method=method,
+        max_radius=max_radius,
+        normalize=normalize,
+        depth=depth if method == "occlusion" else None,
+    )
+
+
+FOOTPRINT_RENDERS = {False: None, "radius": footprint_render, "prefilter": prefilter_render}
+
+
 def fit_one(
     pin, z, target, a, d, weight=None, prefilter=False, starts=1, footprint=False, method="soft"
 ):
@@ -432,7 +451,7 @@ def fit_one(
     # The footprint candidate is measured by swapping the fit's forward model (study only: fit_lens
     # has no option for it yet).
     saved = fit_module.render
-    fit_module.render = footprint_render if footprint else saved
+    fit_module.render = FOOTPRINT_RENDERS[footprint] or saved
     # The compiled solve is cached by its (model, window) key, which does not see the swap: clear
     # it, or a footprint fit would silently reuse the plain model compiled just before.
     jax.clear_caches()
@@ -500,7 +519,7 @@ def fit_cached(name, a, d, edges=False, prefilter=False, starts=1, footprint=Fal
 
     key = (
         f"fit_{name}_A{a}_df{d}_e{int(edges)}_p{int(prefilter)}_s{starts}"
-        + ("_fp" if footprint else "")
+        + {False: "", "radius": "_fp", "prefilter": "_fpre"}[footprint]
         + ("" if method == "soft" else f"_{method}")
     )
     path = CACHE / f"{key}.json"
@@ -528,15 +547,21 @@ def fit_cached(name, a, d, edges=False, prefilter=False, starts=1, footprint=Fal
     return out
 
 
-TREATMENTS = {  # name: (edge weight, image prefilter, footprint radius, render method)
+# name: (edge weight, uniform image prefilter, footprint treatment, render method); the footprint
+# treatment is False, "radius" (`footprint_radius`) or "prefilter" (`footprint_prefilter`).
+TREATMENTS = {
     "plain": (False, False, False, "soft"),
     "edge weight": (True, False, False, "soft"),
     "prefilter": (False, True, False, "soft"),
-    "footprint": (False, False, True, "soft"),
-    "edge + footprint": (True, False, True, "soft"),
+    "footprint": (False, False, "radius", "soft"),
+    "edge + footprint": (True, False, "radius", "soft"),
+    "fp prefilter": (False, False, "prefilter", "soft"),
+    "edge + fp prefilter": (True, False, "prefilter", "soft"),
     "occlusion": (False, False, False, "occlusion"),
-    "occlusion + footprint": (False, False, True, "occlusion"),
-    "occlusion + edge + footprint": (True, False, True, "occlusion"),
+    "occlusion + footprint": (False, False, "radius", "occlusion"),
+    "occlusion + edge + footprint": (True, False, "radius", "occlusion"),
+    "occlusion + fp prefilter": (False, False, "prefilter", "occlusion"),
+    "occlusion + edge + fp prefilter": (True, False, "prefilter", "occlusion"),
 }
 
 
@@ -554,12 +579,24 @@ def fit_plan():
         (n, a, d, "occlusion + footprint") for n in ("planes", "occluders") for a, d in CONFIGS
     ]
     plan += [(n, a, d, "occlusion + edge + footprint") for n in ("occluders",) for a, d in CONFIGS]
+    # the radius-aware image prefilter (item 6), alone and with each edge treatment
+    plan += [(n, a, d, "fp prefilter") for n in SCENES for a, d in CONFIGS]
+    plan += [(n, a, d, "edge + fp prefilter") for n in ("planes", "occluders") for a, d in CONFIGS]
+    plan += [
+        (n, a, d, "occlusion + fp prefilter") for n in ("planes", "occluders") for a, d in CONFIGS
+    ]
+    plan += [
+        (n, a, d, "occlusion + edge + fp prefilter") for n in ("occluders",) for a, d in CONFIGS
+    ]
     return plan
 
 
-def run_fits():
+def run_fits(only=None):
+    """Every fit of `fit_plan` (cached), or only those of the treatments in `only`."""
     out = {}
     for n, a, d, t in fit_plan():
+        if only is not None and t not in only:
+            continue
         e, p, fp, meth = TREATMENTS[t]
         out[(n, a, d, t)] = fit_cached(n, a, d, edges=e, prefilter=p, footprint=fp, method=meth)
     return out
@@ -1185,7 +1222,22 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--fixtures", action="store_true")
     ap.add_argument("--render-only", action="store_true")
+    ap.add_argument(
+        "--fits",
+        nargs="+",
+        metavar="TREATMENT",
+        help="only run (and cache) the fits of these treatments, then stop",
+    )
     args = ap.parse_args()
+    if args.fits:
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+        unknown = set(args.fits) - set(TREATMENTS)
+        if unknown:
+            ap.error(f"unknown treatments {sorted(unknown)}; known: {sorted(TREATMENTS)}")
+        run_fits(only=set(args.fits))
+        sys.exit(0)
     for name in (*SCENES, "emitters"):
         print(name, flush=True)
         load_scene(name)

@@ -20,7 +20,14 @@ from jaxdof import (
     lens_from_raytracer,
     ray_distance_to_z,
 )
-from jaxdof._corrections import edge_distance, pixel_prefilter
+from jax.test_util import check_grads
+
+from jaxdof._corrections import (
+    edge_distance,
+    footprint_prefilter,
+    kernel_variance,
+    pixel_prefilter,
+)
 
 
 DATA = Path(__file__).parent / "data"
@@ -291,3 +298,83 @@ def test_footprint_radius_limits():
     assert np.all(np.diff(rho) > 0)
     # large circles: the pixel box's 1/12 per axis (plus the sampled kernel's ~0.02) comes off
     np.testing.assert_allclose(rho[-3:], np.sqrt(r[-3:] ** 2 - 1 / 3), rtol=4e-3)
+
+
+def overlap_kernel(r, half=8):
+    """The soft filter's kernel overlap(o, r) / (pi r^2) on offsets -half..half, and the offsets."""
+    o = np.arange(-float(half), half + 1.0)
+    dx, dy = np.meshgrid(o, o, indexing="ij")
+    area = np.asarray(jaxdof.circle_pixel_overlap(dx, dy, np.full(dx.shape, r)))
+    return area / (np.pi * r * r), dx, dy
+
+
+@pytest.mark.parametrize("r", [0.3, 0.5, 0.52, 0.8, 1.0, 1.5, 2.37, 5.0, 7.9])
+def test_kernel_variance_matches_the_overlap_kernel(r):
+    # The closed form against the per-axis second moment of the kernel built from
+    # circle_pixel_overlap (float64): both exact, so only rounding differs.
+    k, dx, _ = overlap_kernel(r, half=9)
+    np.testing.assert_allclose(float(kernel_variance(np.float64(r))), (k * dx**2).sum(), atol=1e-12)
+
+
+def test_kernel_variance_limits_and_gradients():
+    r = np.array([0.0, 0.2, 0.5, 24.5, 30.0])
+    v = np.asarray(kernel_variance(r))
+    np.testing.assert_array_equal(v[:3], 0.0)  # the disc stays inside its pixel: a copy
+    # beyond the exact range the excess over r^2/4 is held at its last value (~1/12 + sampling)
+    np.testing.assert_allclose(v[4] - r[4] ** 2 / 4, v[3] - r[3] ** 2 / 4, rtol=1e-12)
+    assert 0.07 < v[3] - r[3] ** 2 / 4 < 0.1
+    # C^1 but not C^2 where the disc's edge crosses a pixel boundary (r = k + 1/2: Var grows like
+    # (r - k - 1/2)^(3/2)), so the finite-difference check uses radii away from those points.
+    check_grads(
+        kernel_variance,
+        (np.array([0.0, 0.3, 0.62, 1.1, 1.8, 3.3, 9.7, 31.0]),),
+        order=1,
+        modes=["fwd", "rev"],
+    )
+
+
+@pytest.mark.parametrize("r", [0.0, 0.3, 0.45, 0.7, 1.0, 1.3, 2.2, 3.7])
+def test_footprint_prefilter_gives_the_lens_variance(r):
+    # Spreading the corrected image with the filter's kernel must give the lens disc's per-axis
+    # variance r^2/4 exactly (the prefilter matches the second moment by construction), including
+    # under half a pixel, where coc_filter copies and the prefilter does all of the blur; and it
+    # must conserve the light. Impulse response on a 33x33 frame, uniform radius; float64 rounding.
+    n = 33
+    img = np.zeros((n, n))
+    img[n // 2, n // 2] = 1.0
+    radius = np.full((n, n), r)
+    out = np.asarray(jaxdof.coc_filter(footprint_prefilter(img, radius), radius))
+    yy, xx = np.mgrid[0:n, 0:n] - n // 2
+    np.testing.assert_allclose(out.sum(), 1.0, rtol=1e-13)
+    np.testing.assert_allclose((out * xx**2).sum(), r * r / 4, atol=1e-12)
+    np.testing.assert_allclose((out * yy**2).sum(), r * r / 4, atol=1e-12)
+
+
+def test_pixel_prefilter_inverts_the_box_on_a_band_limited_signal():
+    # Box-averaged samples of cos(w x) have amplitude sinc(w/2) = sin(w/2)/(w/2); the 5-point
+    # prefilter multiplies them by 1 + (1 - cos w)/12 per axis, the inverse of the box to 2nd order.
+    # At w = pi/4 (a quarter of the Nyquist frequency pi) the 4th-order remainder is
+    # |sinc(pi/8) (1 + (1 - cos(pi/4))/12) - 1| = 1.72e-3 of the amplitude, against 2.55e-2 without
+    # the prefilter: the tolerance 2e-3 is that remainder. footprint_prefilter for large circles is
+    # this filter with c = (Var - r^2/4)/2 instead of 1/24 (the sampled kernel's own excess).
+    w = np.pi / 4
+    x = np.arange(40.0)
+    box = np.sin(w / 2) / (w / 2)
+    img = np.broadcast_to((box * np.cos(w * x))[None, :, None], (40, 40, 2)).copy()
+    truth = np.broadcast_to(np.cos(w * x)[None, 2:-2, None], (40, 36, 2))
+    out = np.asarray(pixel_prefilter(img))[:, 2:-2]  # edge columns see the repeated border
+    np.testing.assert_allclose(out, truth, atol=2e-3)
+    assert np.max(np.abs(img[:, 2:-2] - truth)) > 2.5e-2
+
+
+def test_footprint_prefilter_gradients_and_checks():
+    rng = np.random.default_rng(3)
+    img = rng.uniform(size=(6, 7, 2))
+    # radii away from k + 1/2 (see test_kernel_variance_limits_and_gradients), under and over 1/2
+    radius = np.array([0.1, 0.33, 0.71, 1.17, 2.13, 3.07, 6.21])[None, :]
+    radius = radius + np.linspace(0.0, 0.18, 6)[:, None]
+    check_grads(footprint_prefilter, (img, radius), order=1, modes=["fwd", "rev"])
+    with pytest.raises(ValueError, match="one circle per pixel"):
+        footprint_prefilter(img, radius[:, :5])
+    with pytest.raises(ValueError, match="floating"):
+        footprint_prefilter(np.ones((4, 4), np.int32), np.ones((4, 4)))
