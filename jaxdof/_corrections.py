@@ -122,7 +122,11 @@ def pixel_prefilter(image: ImageLike) -> Image:
     frequency (gain `1 + 1/3` there).
 
     In-focus pixels (circles under half a pixel) are copied by the filter, not spread, so they come
-    out sharpened; the prefilter helps where circles are about 1 px or larger.
+    out sharpened; the prefilter helps where circles are about 1 px or larger. Measured against
+    Mitsuba (`fits/results/raytraced.md`) this sharpening of the in-focus pixels doubles the
+    model's error at the true lens on a slanted plane and biases the fit; `footprint_prefilter`
+    is this filter with a strength chosen per pixel from its circle (this one's `1/24` for large
+    circles, a slight blur under half a pixel), which removes that bias. Kept for comparison.
     """
     x = jnp.asarray(image)
     if x.ndim not in (2, 3):
@@ -181,8 +185,10 @@ def footprint_radius(radius: ArrayLike):
     **Measured** against Mitsuba (`fits/results/raytraced.md`): it removes the few-percent
     under-estimate of the blur scale that fits with the plain model show on fronto-parallel
     planes and (with `edge_weight`) on occluders, but over-corrects by a few percent on a
-    slanted plane whose image holds texture near the Nyquist frequency, where the pixel values
-    are not samples of a smooth `L * box`. Hence opt-in.
+    slanted plane whose image holds texture near the Nyquist frequency: a smaller disc matches
+    the variance but not the shape of the transfer function at higher frequencies, and it still
+    copies the circles under half a pixel. `footprint_prefilter` (which keeps the radius and
+    corrects the image) does not over-correct there. Hence opt-in.
     """
     r = jnp.asarray(radius)
     table_r, table_var = _kernel_variance_table()
