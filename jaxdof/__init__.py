@@ -9,6 +9,7 @@ from ._batch import (
 from ._corrections import (
     depth_edges as depth_edges,
     edge_weight as edge_weight,
+    footprint_prefilter as footprint_prefilter,
     footprint_radius as footprint_radius,
 )
 from ._filters import (
