@@ -94,9 +94,9 @@ WHY_NOT_10X = (
     "do so on the coarse level, at a looser tolerance, instead of holding the whole vmapped full-resolution solve "
     "until they finish. Reaching 10x against one scipy start needs full-resolution steps cheaper than a render, "
     "or fewer of them. For cheaper steps: the soft filter computes its tap weights once in the primal render and "
-    "again in the tangent, and one fused pass would save most of a render per step. For fewer steps: a coarse level "
-    "corrected for its model error (the full-approximation scheme of nonlinear multigrid), so that the "
-    "full-resolution level starts within a step or two of its minimum. Neither is done here.\n"
+    "again in the tangent, and one fused pass would save most of a render per step. For fewer steps: a coarse level whose "
+    "minimum lies within a step or two of the full-resolution one, which box-averaging does not give for circles "
+    "of a few pixels. Neither is done here.\n"
 )
 
 

@@ -506,3 +506,23 @@ def test_pyramid_bad_value(pyramid, match):
     image, depth = scene()
     with pytest.raises(ValueError, match=match):
         fit_lens(image, depth, image, lens(), pyramid=pyramid)
+
+
+def test_pyramid_keeps_near_far_ambiguity():
+    """A near/far tie found on the coarse level is refined at full resolution too, and reported."""
+    image, _ = scene()
+    depth = np.full((H, W), 2.0)
+    target = render(image, depth, lens(focus_distance=1.5))
+    res = fit_lens(
+        image,
+        depth,
+        target,
+        lens(focus_distance=1.3),
+        free=("focus_distance",),
+        max_radius=WINDOW,
+        starts=STARTS,
+        pyramid=PYRAMID,
+    )
+    assert res.levels == PYRAMID
+    assert not bool(res.success)
+    assert "another start converged" in res.message
