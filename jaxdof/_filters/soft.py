@@ -9,12 +9,15 @@ Three things make it cheap:
 
 - **Symmetry.** A disc is symmetric under the eight reflections of the square grid, so
   `w(o, r)` is the same for the up-to-eight offsets `(±oy, ±ox), (±ox, ±oy)`. The weight is computed
-  once per *canonical* offset `0 <= oy <= ox`, on the source grid, and the weighted source image,
-  zero-padded, is read at every mirrored offset in one fused pass: about one eighth of the weight
-  evaluations (`symmetric_gather`).
+  once per *canonical* offset `0 <= oy <= ox`, on the zero-padded source grid, and the weighted
+  source image is read at every mirrored offset in one fused pass: about one eighth of the weight
+  evaluations (`symmetric_gather`, `mirrored_scatter`).
 - **A lean per-tap formula** (`tap_area`): two square roots locate the arc's end points, and the
   thin circular segment under the chord comes from one series in the sine of the quarter
-  angle that converges over the whole range, so no branch is evaluated and thrown away.
+  angle that converges over the whole range, so no branch is evaluated and thrown away. Each
+  weight ends in a division, which XLA keeps in one fused kernel instead of re-evaluating the
+  formula's tail in every consumer (each mirrored offset, each channel): half the cost at small
+  radii (see `_weight_and_slope`).
 - **Hand-written derivatives** (`soft_filter`): the tangent is a primitive whose transpose is a
   gather of the same shape from the padded cotangent (see the comment above `_tangent`), so
   forward and reverse mode each cost about one more pass, not a transpose that writes a padded
@@ -135,12 +138,18 @@ def _weight_and_slope(ax, bx, ay, by, m, centre, r, *, with_slope: bool):
     """`w = m |disc(r) ∩ rect| / (pi r^2)` and, if asked, `dw/dr`; identity and 0 for `r <= 1/2`."""
     big = r > 0.5
     rs = jnp.where(big, r, 1)
-    inv = m / (math.pi * rs * rs)
+    # Each weight ends in a division, on purpose: XLA does not copy a division into the consumers
+    # that read it (the mirrored shifts, every channel), so the weight is computed once per pixel
+    # and class. Ending in a multiply by a precomputed 1 / (pi r^2) let XLA re-evaluate the whole
+    # tail of `tap_area` in every consumer (several times slower at small radii).
+    disc = (math.pi / m) * (rs * rs)
     if not with_slope:
-        return jnp.where(big, tap_area(ax, bx, ay, by, rs) * inv, centre)
+        return jnp.where(big, tap_area(ax, bx, ay, by, rs) / disc, centre)
     area, arc = tap_area(ax, bx, ay, by, rs, with_arc=True)
-    # d/dr [A / (pi r^2)] = (dA/dr - 2 A / r) / (pi r^2), with dA/dr the arc length inside.
-    return jnp.where(big, area * inv, centre), jnp.where(big, (arc - 2 * area / rs) * inv, 0)
+    w = jnp.where(big, area / disc, centre)
+    # d/dr [A / (pi r^2)] = A' / (pi r^2) - 2 w / r, with A' = dA/dr the arc length inside. Written
+    # with `w`, not `area`, so that the area's tail is evaluated once (in `w`), not again in `dw`.
+    return w, jnp.where(big, arc / disc - 2 * w / rs, 0)
 
 
 @jax.custom_jvp
@@ -162,7 +171,7 @@ def _tap_weight_jvp(primals, tangents):
 def gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
     """`out[p] = sum_o image[p - o] * weight_fn(*geometry(o), r[p - o])` as a checkpointed scan."""
     h, w, c = image.shape
-    pad = int(np.abs(offsets).max()) if offsets.size else 0
+    pad = half_width(offsets)
     pimg = jnp.pad(image, ((pad, pad), (pad, pad), (0, 0)))
     prad = jnp.pad(radius, ((pad, pad), (pad, pad)))
     geometry = _offset_geometry(offsets, image.dtype)
@@ -237,8 +246,30 @@ def _shift_sum(padded, mirrors, k: int, pad: int, sign: int, shape) -> Array:
     return total
 
 
+def half_width(offsets: np.ndarray) -> int:
+    """The largest `|offset|` along either axis: the zero padding a gather over `offsets` reads."""
+    return int(np.abs(offsets).max()) if offsets.size else 0
+
+
 def _pad(x, pad: int) -> Array:
-    return jnp.pad(x, ((pad, pad), (pad, pad), (0, 0)))
+    """`x` (rows and columns leading) with a zero border of `pad` rows and columns."""
+    return jnp.pad(x, ((pad, pad), (pad, pad)) + ((0, 0),) * (x.ndim - 2))
+
+
+def mirrored_scatter(source, offsets: np.ndarray, shape, dtype, inputs: tuple) -> Array:
+    """`out[p] = sum_o x_o[p - o]` with `x_o = source(geometry(o), *padded inputs)`.
+
+    `source` forms, on the zero-padded `inputs` (the halo is the window's half-width), the array
+    that every offset of one mirror class scatters (e.g. the weighted image); it is formed once per
+    class and read at each mirrored offset (`_shift_sum`). `shape` is the output's `(H, W, C)`.
+    """
+    pad = half_width(offsets)
+    padded = tuple(_pad(x, pad) for x in inputs)
+
+    def body(k, acc, mirrors, geom):
+        return acc + _shift_sum(source(geom, *padded), mirrors, k, pad, -1, shape)
+
+    return _scan_classes(offsets, dtype, jnp.zeros(shape, dtype), body)
 
 
 def symmetric_gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
@@ -246,15 +277,13 @@ def symmetric_gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
 
     `out[p] = sum_o image[p - o] w(o, r[p - o])` with `w` invariant under the 8 reflections of the
     grid. For each canonical offset the weighted source `image * w(o, radius)` is formed once, on the
-    source grid, zero-padded, and read at each of its (1, 4 or 8) mirrored offsets.
+    source grid, and read at each of its (1, 4 or 8) mirrored offsets.
     """
-    pad = int(np.abs(offsets).max()) if offsets.size else 0
 
-    def body(k, acc, mirrors, geom):
-        weighted = image * weight_fn(*geom, radius)[..., None]
-        return acc + _shift_sum(_pad(weighted, pad), mirrors, k, pad, -1, image.shape)
+    def weighted(geom, image, radius):
+        return image * weight_fn(*geom, radius)[..., None]
 
-    return _scan_classes(offsets, image.dtype, jnp.zeros_like(image), body)
+    return mirrored_scatter(weighted, offsets, image.shape, image.dtype, (image, radius))
 
 
 # The soft filter with hand-written derivatives.
@@ -273,21 +302,19 @@ def symmetric_gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
 
 def _tangent(image, radius, d_image, d_radius, *, max_radius: float) -> Array:
     """`T(dI, dr)`: one pass per canonical offset computing `w` and `w'` together."""
-    offsets = tap_offsets(max_radius)
-    pad = int(np.abs(offsets).max()) if offsets.size else 0
 
-    def body(k, acc, mirrors, geom):
+    def source(geom, image, radius, d_image, d_radius):
         w, dw = _weight_and_slope(*geom, radius, with_slope=True)
-        x = d_image * w[..., None] + image * (dw * d_radius)[..., None]
-        return acc + _shift_sum(_pad(x, pad), mirrors, k, pad, -1, image.shape)
+        return d_image * w[..., None] + image * (dw * d_radius)[..., None]
 
-    return _scan_classes(offsets, image.dtype, jnp.zeros_like(image), body)
+    inputs = (image, radius, d_image, d_radius)
+    return mirrored_scatter(source, tap_offsets(max_radius), image.shape, image.dtype, inputs)
 
 
 def _adjoint(image, radius, cotangent, *, max_radius: float) -> tuple[Array, Array]:
     """`(dI*, dr*)`, the adjoint of `T` applied to `cotangent`."""
     offsets = tap_offsets(max_radius)
-    pad = int(np.abs(offsets).max()) if offsets.size else 0
+    pad = half_width(offsets)
     padded = _pad(cotangent, pad)
 
     def body(k, acc, mirrors, geom):

@@ -20,7 +20,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .common import tap_offsets
-from .soft import _pad, _scan_classes, _shift_sum, tap_weight
+from .soft import mirrored_scatter, tap_weight
 
 
 def radius_levels(radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -38,14 +38,11 @@ def tabulated_filter(
     index: np.ndarray,
 ) -> Float[Array, "h w c"]:
     """The soft scatter of `image` for the radius map `levels[index]` (concrete, clamped)."""
-    offsets = tap_offsets(max_radius)
-    pad = int(np.abs(offsets).max()) if offsets.size else 0
     rho = jnp.asarray(levels, image.dtype)
-    idx = jnp.asarray(index, jnp.int32)
 
-    def body(k, acc, mirrors, geom):
+    def weighted(geom, image, idx):
         row = tap_weight(*geom, rho)  # this offset's weight at each of the L levels
-        weighted = image * jnp.take(row, idx)[..., None]
-        return acc + _shift_sum(_pad(weighted, pad), mirrors, k, pad, -1, image.shape)
+        return image * jnp.take(row, idx)[..., None]
 
-    return _scan_classes(offsets, image.dtype, jnp.zeros_like(image), body)
+    inputs = (image, jnp.asarray(index, jnp.int32))
+    return mirrored_scatter(weighted, tap_offsets(max_radius), image.shape, image.dtype, inputs)
