@@ -203,7 +203,7 @@ bracket (several photos, --shared focal_length f_number) also determines the foc
 _EPILOG_DEMO = """\
 examples:
   jaxdof demo
-  jaxdof demo --out /tmp/demo.png
+  jaxdof demo --out blurred_scene.png
 """
 
 
