@@ -10,6 +10,7 @@ from jax.test_util import check_grads
 
 from jaxdof import ThinLens, coc_filter, render
 from jaxdof._filters.auto import choose_method, max_layers
+from jaxdof._filters import tabulated
 from jaxdof._filters.tabulated import radius_levels, tabulated_filter
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
 
@@ -282,8 +283,11 @@ def test_layered_keeps_sharp_pixels_sharp_when_binning():
     np.testing.assert_allclose(only_sharp, src, atol=1e-12)
 
 
-def test_tabulated_equals_soft():
-    """The looked-up weights are the soft filter's: same result, depth edges and identity level included."""
+@pytest.mark.parametrize("select_max", [16, 0], ids=["select-chain", "take"])
+def test_tabulated_equals_soft(monkeypatch, select_max):
+    """The looked-up weights are the soft filter's: same result, depth edges and identity level
+    included, through either look-up (a chain of selects for few levels, a gather for many)."""
+    monkeypatch.setattr(tabulated, "SELECT_MAX_LEVELS", select_max)
     image, radius = _levels_scene([0.2, 1.7, 3.25, 6.0, 6.5])
     levels, index = radius_levels(radius)
     assert np.array_equal(levels, [0.0, 1.7, 3.25, 6.0, 6.5])

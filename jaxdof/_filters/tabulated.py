@@ -30,6 +30,22 @@ def radius_levels(radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return levels, index.reshape(r.shape).astype(np.int32)
 
 
+# Up to this many levels each pixel's weight is picked by a chain of selects, which XLA fuses into
+# the weighting pass; beyond it by `jnp.take`, a gather. Measured at R = 2 on CPU (512^2 and 1024^2,
+# one run): the chain takes 0.45-0.7x the time of `take` for L = 3 and 8, 0.9x for L = 16.
+SELECT_MAX_LEVELS = 16
+
+
+def _look_up(row: Array, idx: Array) -> Array:
+    """`row[idx]` for a short table `row` (L,) and an index map `idx` (H, W)."""
+    if row.shape[0] > SELECT_MAX_LEVELS:
+        return jnp.take(row, idx)
+    out = jnp.broadcast_to(row[0], idx.shape)
+    for level in range(1, row.shape[0]):
+        out = jnp.where(idx == level, row[level], out)
+    return out
+
+
 def tabulated_filter(
     image: Float[Array, "h w c"],
     *,
@@ -42,7 +58,7 @@ def tabulated_filter(
 
     def weighted(geom, image, idx):
         row = tap_weight(*geom, rho)  # this offset's weight at each of the L levels
-        return image * jnp.take(row, idx)[..., None]
+        return image * _look_up(row, idx)[..., None]
 
     inputs = (image, jnp.asarray(index, jnp.int32))
     return mirrored_scatter(weighted, tap_offsets(max_radius), image.shape, image.dtype, inputs)
