@@ -891,8 +891,10 @@ def main(fixtures=False):
     summary, times = {}, []
     groups = (
         ("Soft forward model:", [t for t in treatments if TREATMENTS[t][3] == "soft"]),
-        ('Occlusion-aware forward model (`method="occlusion"`):',
-         [t for t in treatments if TREATMENTS[t][3] == "occlusion"]),
+        (
+            'Occlusion-aware forward model (`method="occlusion"`):',
+            [t for t in treatments if TREATMENTS[t][3] == "occlusion"],
+        ),
     )
     for title, group in groups:
         L += [
@@ -996,9 +998,7 @@ def main(fixtures=False):
         return sorted(
             a * F_PX / d
             for (n, a, d, t), f in fits.items()
-            if t == tr
-            and n == sc
-            and not (abs(f["d_f_err"]) < 0.02 and abs(f["K_err"]) < 0.05)
+            if t == tr and n == sc and not (abs(f["d_f_err"]) < 0.02 and abs(f["K_err"]) < 0.05)
         )
 
     def med_tr(tr, k):

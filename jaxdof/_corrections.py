@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ._custom_types import Image, ImageLike, Radius, RadiusLike
+from ._custom_types import Image, ImageLike, RadiusLike
 
 
 def depth_edges(depth: ArrayLike, *, jump: float = 0.03) -> np.ndarray:

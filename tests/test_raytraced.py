@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 
 import jaxdof
 from jaxdof import (
@@ -21,8 +22,6 @@ from jaxdof import (
     lens_from_raytracer,
     ray_distance_to_z,
 )
-from jax.test_util import check_grads
-
 from jaxdof._corrections import (
     edge_distance,
     footprint_prefilter,
