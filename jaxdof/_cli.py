@@ -177,6 +177,15 @@ def _add_filter_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="keep brightness at the borders (divide by the filtered image of ones)",
     )
+    _add_footprint_option(g)
+
+
+def _add_footprint_option(g) -> None:
+    g.add_argument(
+        "--footprint",
+        action="store_true",
+        help="correct for the pixel footprint (blur variance r^2/4 at every radius; off by default)",
+    )
 
 
 _EPILOG_RENDER = """\
@@ -283,6 +292,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="free fields shared by all targets (the others get one value per target)",
     )
     fit.add_argument("--max-steps", type=int, default=100, metavar="N", help="solver steps (100)")
+    _add_footprint_option(fit)
     fit.add_argument(
         "--max-radius",
         type=parse_nonnegative,
@@ -414,6 +424,7 @@ def run_render(args) -> int:
             method=args.method,
             max_radius=args.max_radius,
             normalize=args.normalize,
+            footprint=args.footprint,
         )
     except ValueError as err:  # the library's own input checks (house style: ValueError)
         raise InputError(" ".join(str(err).split())) from None
@@ -538,6 +549,7 @@ def run_fit(args) -> int:
             shared=tuple(args.shared),
             max_steps=args.max_steps,
             max_radius=args.max_radius,
+            footprint=args.footprint,
             verbose=_progress(args.quiet),
         )
     except ValueError as err:  # e.g. a free set one photo cannot determine

@@ -110,6 +110,23 @@ def test_render_png(files):
     (d / "out.png").unlink()
 
 
+def test_render_footprint_option(files):
+    """`--footprint` is `render(..., footprint=True)`: the opt-in pixel-footprint correction."""
+    d, hashes, linear, depth = files
+    import jaxdof
+
+    res = _run(["render", "sharp.png", "depth.npy", "-o", "out.npy", "--footprint", *LENS], d)
+    assert res.returncode == 0, res.stderr
+    out = np.load(d / "out.npy")
+    expect = np.asarray(jaxdof.render(linear, depth, _lens(jaxdof), footprint=True))
+    plain = np.asarray(jaxdof.render(linear, depth, _lens(jaxdof)))
+    # float32 in the CLI against this float64 call: rounding only; and not the plain render
+    assert np.max(np.abs(out - expect)) < 1e-5
+    assert np.max(np.abs(out - plain)) > 1e-3
+    _unchanged(d, hashes)
+    (d / "out.npy").unlink()
+
+
 def test_render_float_tiff_and_millimetre_png(files):
     d, hashes, linear, depth = files
     import jaxdof

@@ -1,0 +1,55 @@
+"""The opt-in pixel-footprint correction as an option of `render`, `fit_lens` and the CLI.
+
+`footprint_prefilter` itself (its variance, its gradients, float32) is tested in
+`tests/test_raytraced.py`; here: that the option is exactly that prefilter composed with the
+filter, off by default, differentiable through `render` in every input, and that a fit through it
+recovers the lens that rendered its targets.
+"""
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdof import coc_filter, coc_radius, fit_lens, footprint_prefilter, render
+
+from .test_fit import STARTS, WINDOW, lens, rel_err, scene, wrong_init
+from .test_gradients import LENS_ARGS, _extreme_depths, _render, check
+
+
+def test_render_footprint_is_the_prefilter_then_the_filter():
+    image, depth = scene()
+    true = lens()
+    r = coc_radius(depth, true)
+    composed = coc_filter(footprint_prefilter(image, r), r, max_radius=WINDOW)
+    np.testing.assert_array_equal(
+        render(image, depth, true, max_radius=WINDOW, footprint=True), composed
+    )
+    # off by default: the plain filter, and a different image (the correction is not a no-op)
+    plain = render(image, depth, true, max_radius=WINDOW)
+    np.testing.assert_array_equal(plain, coc_filter(image, r, max_radius=WINDOW))
+    assert float(jnp.max(jnp.abs(plain - composed))) > 1e-3
+
+
+def test_render_footprint_every_input():
+    """Image, depth and every lens field (float64, forward and reverse mode), on a scene with
+    depths at infinity, at the focus plane and just beyond the focal length (clamped)."""
+    image, depth, inf_mask = _extreme_depths()
+    f = _render("soft", {"footprint": True}, inf_mask=inf_mask)
+    check(f, (image, depth, *LENS_ARGS), jit=True)
+
+
+def test_fit_through_the_footprint_model():
+    """Targets rendered with the correction are recovered by a fit through it (float64, noise-free,
+    the usual wrong start), and the plain model fitted to them is biased in K: the option matters."""
+    image, depth = scene()
+    true = lens()
+    target = render(image, depth, true, max_radius=WINDOW, footprint=True)
+    free = ("f_number", "focus_distance")
+    init = wrong_init(free)
+    kw = dict(free=free, max_radius=WINDOW, starts=STARTS)
+    res = fit_lens(image, depth, target, init, footprint=True, **kw)
+    assert bool(res.success), res.message
+    err = rel_err(res.lens, true, ("f_number", "focus_distance"))
+    assert max(err.values()) < 1e-4, err  # the fit issue's float64 target
+    plain = fit_lens(image, depth, target, init, **kw)
+    k_err = abs(float(plain.lens.blur_scale) / float(true.blur_scale) - 1)
+    assert k_err > 1e-3, k_err  # the plain model cannot express the corrected blur
