@@ -396,7 +396,9 @@ def emitter_table():
     return np.array(rows)
 
 
-def footprint_render(image, depth, lens, *, method="soft", max_radius=None, normalize=False):
+def footprint_render(
+    image, depth, lens, *, method="soft", max_radius=None, normalize=False, footprint=False
+):
     """`jaxdof.render` with the pixel-footprint correction `footprint_radius` on the radius."""
     import jaxdof
     from jaxdof._corrections import footprint_radius
@@ -412,23 +414,9 @@ def footprint_render(image, depth, lens, *, method="soft", max_radius=None, norm
     )
 
 
-def prefilter_render(image, depth, lens, *, method="soft", max_radius=None, normalize=False):
-    """`jaxdof.render` of the footprint-corrected image `footprint_prefilter(image, radius)`."""
-    import jaxdof
-    from jaxdof._corrections import footprint_prefilter
-
-    radius = jaxdof.coc_radius(depth, lens).astype(image.dtype)
-    return jaxdof.coc_filter(
-        footprint_prefilter(image, radius),
-        radius,
-        method=method,
-        max_radius=max_radius,
-        normalize=normalize,
-        depth=depth if method == "occlusion" else None,
-    )
-
-
-FOOTPRINT_RENDERS = {False: None, "radius": footprint_render, "prefilter": prefilter_render}
+# The `footprint_radius` candidate has no option in fit_lens: swapped in as the forward model.
+# `footprint_prefilter` is fit_lens(..., footprint=True).
+FOOTPRINT_RENDERS = {False: None, "radius": footprint_render, "prefilter": None}
 
 
 def fit_one(
@@ -449,8 +437,8 @@ def fit_one(
     from jaxdof._fit import fit_lens
 
     f64 = lambda x: None if x is None else np.asarray(x, np.float64)
-    # The footprint candidate is measured by swapping the fit's forward model (study only: fit_lens
-    # has no option for it yet).
+    # The footprint-radius candidate is measured by swapping the fit's forward model (study only);
+    # the prefilter is fit_lens's own `footprint=True`.
     saved = fit_module.render
     fit_module.render = FOOTPRINT_RENDERS[footprint] or saved
     # The compiled solve is cached by its (model, window) key, which does not see the swap: clear
@@ -468,6 +456,7 @@ def fit_one(
             weight=f64(weight),
             starts=starts,
             method=method,
+            footprint=footprint == "prefilter",
             **extra,
         )
     finally:
