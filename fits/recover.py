@@ -571,6 +571,14 @@ def fmt(x, digits=3):
     return f"{x:.{digits}g}"
 
 
+def _cells(timing, sizes):
+    """`(size, scene, m)` per row of a cost table, `m(key)` the median of `key` over its trials."""
+    for size in sizes:
+        for name in dict.fromkeys(t["scene"] for t in timing if t["size"] == size):
+            ts = [t for t in timing if t["scene"] == name and t["size"] == size]
+            yield size, name, (lambda k, ts=ts: float(np.median([t[k] for t in ts])))
+
+
 def write(rows, bracket, cost, compile_s, trials, total, quick):
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
@@ -683,13 +691,11 @@ def write(rows, bracket, cost, compile_s, trials, total, quick):
     )
     md.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     speeds = {}
+    for size, name, m in _cells(timing, sizes):
+        md.append(
+            f"| {size} | {name} | {m('ours1'):.4f} | {m('cpu1'):.4f} | {m('steps'):g} | {m('pyr1'):.4f} | {m('pyr_cpu1'):.4f} | {m('levels'):g} | {m('pyr_steps'):g} | {m('scipy'):.4f} | {m('scipy_cpu'):.4f} | {m('evals'):g} | {m('scipy') / m('ours1'):.2f} | {m('scipy') / m('pyr1'):.2f} | {m('scipy_cpu') / m('pyr_cpu1'):.2f} | {m('pN'):.2g}, {m('pD'):.2g} | {m('dN'):.2g}, {m('dD'):.2g} |"
+        )
     for size in sizes:
-        for name in dict.fromkeys(t["scene"] for t in timing if t["size"] == size):
-            ts = [t for t in timing if t["scene"] == name and t["size"] == size]
-            m = lambda k, ts=ts: float(np.median([t[k] for t in ts]))  # noqa: E731
-            md.append(
-                f"| {size} | {name} | {m('ours1'):.4f} | {m('cpu1'):.4f} | {m('steps'):g} | {m('pyr1'):.4f} | {m('pyr_cpu1'):.4f} | {m('levels'):g} | {m('pyr_steps'):g} | {m('scipy'):.4f} | {m('scipy_cpu'):.4f} | {m('evals'):g} | {m('scipy') / m('ours1'):.2f} | {m('scipy') / m('pyr1'):.2f} | {m('scipy_cpu') / m('pyr_cpu1'):.2f} | {m('pN'):.2g}, {m('pD'):.2g} | {m('dN'):.2g}, {m('dD'):.2g} |"
-            )
         sel = [t for t in timing if t["size"] == size]
         speeds[size] = dict(
             flat=float(np.median([t["scipy"] / t["ours1"] for t in sel])),
@@ -730,13 +736,11 @@ def write(rows, bracket, cost, compile_s, trials, total, quick):
         "| size | scene | fit_lens 4 starts, full res (s) | pyramid 4 starts (s) | CPU (s) | scipy 4 starts (s) | CPU (s) | scipy renders | scipy / pyramid wall | CPU | full res / pyramid wall | |scipy - ours| / stderr (N, d_f) |"
     )
     md.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for size, name, m in _cells(timing, sizes):
+        md.append(
+            f"| {size} | {name} | {m('ours4'):.4f} | {m('pyr4'):.4f} | {m('pyr_cpu4'):.4f} | {m('scipy4'):.4f} | {m('scipy_cpu4'):.4f} | {m('evals4'):g} | {m('scipy4') / m('pyr4'):.2f} | {m('scipy_cpu4') / m('pyr_cpu4'):.2f} | {m('ours4') / m('pyr4'):.2f} | {m('d4N'):.2g}, {m('d4D'):.2g} |"
+        )
     for size in sizes:
-        for name in dict.fromkeys(t["scene"] for t in timing if t["size"] == size):
-            ts = [t for t in timing if t["scene"] == name and t["size"] == size]
-            m = lambda k, ts=ts: float(np.median([t[k] for t in ts]))  # noqa: E731
-            md.append(
-                f"| {size} | {name} | {m('ours4'):.4f} | {m('pyr4'):.4f} | {m('pyr_cpu4'):.4f} | {m('scipy4'):.4f} | {m('scipy_cpu4'):.4f} | {m('evals4'):g} | {m('scipy4') / m('pyr4'):.2f} | {m('scipy_cpu4') / m('pyr_cpu4'):.2f} | {m('ours4') / m('pyr4'):.2f} | {m('d4N'):.2g}, {m('d4D'):.2g} |"
-            )
         sel = [t for t in timing if t["size"] == size]
         speeds[size].update(
             multi=float(np.median([t["scipy4"] / t["pyr4"] for t in sel])),

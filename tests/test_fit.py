@@ -154,26 +154,6 @@ def test_dead_zone_detected():
     assert not bool(res.success) and "half a pixel" in res.message
 
 
-def test_near_far_ambiguity_is_reported():
-    """One fronto-parallel plane: a focus distance in front of it and one behind blur it alike."""
-    image, _ = scene()
-    depth = np.full((H, W), 2.0)
-    true = lens(focus_distance=1.5)
-    target = render(image, depth, true)
-    res = fit_lens(
-        image,
-        depth,
-        target,
-        lens(focus_distance=1.3),
-        free=("focus_distance",),
-        max_radius=WINDOW,
-        starts=STARTS,
-    )
-    # Both starts reach an exact fit, at different focus distances: never a silent pick.
-    assert not bool(res.success)
-    assert "another start converged" in res.message
-
-
 def test_reproducible_bit_for_bit():
     image, depth = scene()
     rng = np.random.default_rng(1)
@@ -508,8 +488,11 @@ def test_pyramid_bad_value(pyramid, match):
         fit_lens(image, depth, image, lens(), pyramid=pyramid)
 
 
-def test_pyramid_keeps_near_far_ambiguity():
-    """A near/far tie found on the coarse level is refined at full resolution too, and reported."""
+@pytest.mark.parametrize("pyramid", [1, PYRAMID], ids=["full-resolution", "pyramid"])
+def test_near_far_ambiguity_is_reported(pyramid):
+    """One fronto-parallel plane: a focus distance in front of it and one behind blur it alike.
+    Through the pyramid, a near/far tie found on the coarse level is refined at full resolution
+    too, and reported."""
     image, _ = scene()
     depth = np.full((H, W), 2.0)
     target = render(image, depth, lens(focus_distance=1.5))
@@ -521,8 +504,9 @@ def test_pyramid_keeps_near_far_ambiguity():
         free=("focus_distance",),
         max_radius=WINDOW,
         starts=STARTS,
-        pyramid=PYRAMID,
+        pyramid=pyramid,
     )
-    assert res.levels == PYRAMID
+    assert res.levels == pyramid
+    # Both starts reach an exact fit, at different focus distances: never a silent pick.
     assert not bool(res.success)
     assert "another start converged" in res.message

@@ -38,6 +38,18 @@ def load(name):
         return {k: f[k] for k in f.files}
 
 
+def fixture_scene(name):
+    """`(true lens, pinhole image, z-depth, thin-lens target)` of a fixture, float64."""
+    f = load(name)
+    lens = lens_from_raytracer(
+        float(f["aperture_radius"]),
+        float(f["focus_distance"]),
+        fov_x_deg=float(f["fov_x_deg"]),
+        image_width=int(f["width"]),
+    )
+    return (lens, *(f[k].astype(np.float64) for k in ("image", "depth", "target")))
+
+
 def f_px(fov_x_deg, width):
     return (width / 2) / math.tan(math.radians(fov_x_deg) / 2)
 
@@ -218,14 +230,7 @@ def test_occlusion_render_closes_most_of_the_gap_at_depth_edges():
     # over the interior and 16.6 dB within 2 px of a depth edge; method="occlusion" 32.5 and 28.4
     # dB (measured). A margin of 8 dB keeps the claim (most of the edge error removed) without
     # depending on round-off.
-    f = load("occluders")
-    lens = lens_from_raytracer(
-        float(f["aperture_radius"]),
-        float(f["focus_distance"]),
-        fov_x_deg=float(f["fov_x_deg"]),
-        image_width=int(f["width"]),
-    )
-    image, depth, target = (f[k].astype(np.float64) for k in ("image", "depth", "target"))
+    lens, image, depth, target = fixture_scene("occluders")
     r_max = float(np.max(np.asarray(jaxdof.coc_radius(depth, lens))))
     b = int(math.ceil(r_max)) + 2  # the border sees content outside the crop
     inner = np.zeros(depth.shape, bool)
@@ -392,14 +397,7 @@ def test_footprint_prefilter_removes_the_blur_scale_bias_on_raytraced_slant():
     # box), footprint_prefilter -0.6% (footprint_radius: +2.4%). Bounds: the plain bias must stay
     # beyond 2.5% (the effect is real on this crop) and the corrected one within 1.5% (its
     # measured residual plus margin for the parabola's and the target's noise, ~0.5%).
-    f = load("slant")
-    lens = lens_from_raytracer(
-        float(f["aperture_radius"]),
-        float(f["focus_distance"]),
-        fov_x_deg=float(f["fov_x_deg"]),
-        image_width=int(f["width"]),
-    )
-    image, depth, target = (f[k].astype(np.float64) for k in ("image", "depth", "target"))
+    lens, image, depth, target = fixture_scene("slant")
     r = np.asarray(jaxdof.coc_radius(depth, lens))
     b = int(math.ceil(1.6 * r.max())) + 2  # the border sees content outside the crop
     inner = np.zeros(depth.shape + (1,))
