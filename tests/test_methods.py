@@ -9,10 +9,11 @@ import pytest
 from jax.test_util import check_grads
 
 from jaxdof import ThinLens, coc_filter, render
-from jaxdof._filters.auto import choose_method, max_layers
 from jaxdof._filters import tabulated
-from jaxdof._filters.tabulated import radius_levels, tabulated_filter
+from jaxdof._filters.auto import choose_method, max_layers
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
+from jaxdof._filters.layered import assign_numpy, sharp_first_level
+from jaxdof._filters.tabulated import radius_levels, tabulated_filter
 
 
 KEY = jax.random.key(0)
@@ -252,6 +253,20 @@ def test_layered_equals_soft_with_exactly_L_levels(jit):
     assert _err(coc_filter(image, radius, method="layered", layers=3), soft) > 1e-2
 
 
+def test_layered_copies_the_sharp_level():
+    """On a concrete map the level of radii <= 1/2 is copied, not convolved (one FFT fewer); the
+    result is the all-FFT one (a traced map) and the soft filter's."""
+    image, radius = _levels_scene([0.3, 2.5, 7.0])
+    assert sharp_first_level(radius, assign_numpy(radius, 3))
+    assert not sharp_first_level(radius, assign_numpy(radius, 1))  # one level mixes every radius
+    assert not sharp_first_level(np.full_like(radius, 2.5), np.zeros(radius.shape, np.int32))
+    f = lambda i, r: coc_filter(i, r, method="layered", layers=3, max_radius=7.0)  # noqa: E731
+    concrete, traced = f(image, radius), jax.jit(f)(image, radius)
+    assert _err(concrete, traced) < 1e-12 and _err(concrete, coc_filter(image, radius)) < 1e-12
+    # every pixel sharp: no convolution at all, the image itself
+    assert _err(f(image, np.full_like(radius, 0.3)), image) == 0.0
+
+
 def test_layered_float32_matches_soft():
     image, radius = _levels_scene([0.0, 2.5, 7.0])
     image, radius = image.astype(np.float32), radius.astype(np.float32)
@@ -303,7 +318,9 @@ def test_auto_picks_what_the_scene_needs():
     # FFT layers only where L of them cost less than the window's taps (LAYER_COST_IN_TAPS each)
     assert max_layers(5.5) == 1 and max_layers(8.0) == 3
     assert choose_method(const) == "convolution"
-    assert choose_method(np.where(few > 0, 5.5, 0.3)) == "tabulated"  # 0.3 is the identity level
+    # 0.3 is the identity level: copied, not convolved, so one blurred plane needs one FFT layer
+    assert choose_method(np.where(few > 0, 5.5, 0.3)) == "layered"
+    assert choose_method(np.where(few > 0, 5.5, 3.0)) == "tabulated"  # two blurred levels
     assert choose_method(few) == "layered"
     assert choose_method(few, max_radius=12.0) == "layered"
     assert choose_method(np.where(few > 0, few, 0.3), max_radius=3.0) == "tabulated"

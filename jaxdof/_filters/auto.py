@@ -4,9 +4,10 @@ Let `L` be the number of distinct radii (all radii `<= 1/2` count as one level, 
 `T` the number of taps of the window. Every choice gives the soft filter's result (to float
 rounding), so `"auto"` is a speed choice, never an accuracy one:
 
-- **layered** (FFT): one convolution per level with the soft disc kernel, `L` FFTs whatever the
-  radius; chosen when `L * LAYER_COST_IN_TAPS < T`, i.e. few levels and a large window. With
-  `L = 1` this is a single convolution (reported as `"convolution"`).
+- **layered** (FFT): one convolution per level with the soft disc kernel, one FFT per level that
+  blurs (the level of radii `<= 1/2` is copied) whatever the radius; chosen when those levels
+  number at most `T / LAYER_COST_IN_TAPS`, i.e. few levels and a large window. With `L = 1` this
+  is a single convolution (reported as `"convolution"`).
 - **tabulated**: the soft gather with the `L` distinct weights per offset computed once and looked
   up (`tabulated.py`), the cost of a gather with constant weights; chosen otherwise while the
   table is small against the image (`L <= H W / 8`).
@@ -71,6 +72,7 @@ def choose_method(radius, *, max_radius: float | None = None) -> str:
     if max_radius is None:
         max_radius = float(r.max()) if r.size else 0.0
     n = distinct_levels(np.minimum(r, max_radius))
-    if n <= max_layers(max_radius):
+    blurred = n - bool(np.any(r <= 0.5))  # the identity level is copied, not convolved
+    if blurred <= max_layers(max_radius):
         return "convolution" if n == 1 else "layered"
     return "tabulated" if n <= max(1.0, r.size * TABLE_LEVELS_PER_PIXEL) else "soft"

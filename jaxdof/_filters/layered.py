@@ -121,16 +121,24 @@ def layered_filter(
     max_radius: float,
     layers: int,
     assignment: np.ndarray | None = None,
+    sharp_level: bool = False,
 ) -> Float[Array, "h w c"]:
-    """Sum over `layers` radius levels of (masked image) * (soft disc kernel), by FFT."""
+    """Sum over `layers` radius levels of (masked image) * (soft disc kernel), by FFT.
+
+    `sharp_level=True` (known from a concrete map, see `sharp_first_level`): level 0 holds only
+    radii `<= 1/2`, whose kernel is the identity, so its pixels are copied instead of convolved:
+    one FFT layer fewer.
+    """
     h, w, c = image.shape
     dtype = image.dtype
     half = window_half_width(max_radius)
     idx, levels = assign_levels(radius, layers, assignment)
-    kernels = disc_kernels(levels, half)  # (L, k, k)
+    first = int(sharp_level)  # the first level that needs a convolution
+    kernels = disc_kernels(levels[first:], half)  # (L - first, k, k)
     hp, wp = h + 2 * half, w + 2 * half
     # kernel centred at index 0 with negative offsets wrapped: circular = linear conv on the padding
-    kpad = jnp.zeros((layers, hp, wp), dtype).at[:, : 2 * half + 1, : 2 * half + 1].set(kernels)
+    n_conv = layers - first
+    kpad = jnp.zeros((n_conv, hp, wp), dtype).at[:, : 2 * half + 1, : 2 * half + 1].set(kernels)
     kpad = jnp.roll(kpad, (-half, -half), axis=(1, 2))
     kf = jnp.fft.rfft2(kpad)  # (L, hp, wp//2+1)
     chw = jnp.moveaxis(image, -1, 0)  # FFTs over the last two axes run ~2x faster on CPU
@@ -142,6 +150,14 @@ def layered_filter(
         return acc + jnp.fft.rfft2(layer) * kf_l[None], None
 
     acc0 = jnp.zeros((c, hp, wp // 2 + 1), kf.dtype)
-    acc, _ = lax.scan(add_level, acc0, (jnp.arange(layers, dtype=jnp.int32), kf))
-    out = jnp.moveaxis(jnp.fft.irfft2(acc, s=(hp, wp)), 0, -1)
-    return out[:h, :w].astype(dtype)
+    acc, _ = lax.scan(add_level, acc0, (jnp.arange(first, layers, dtype=jnp.int32), kf))
+    out = jnp.moveaxis(jnp.fft.irfft2(acc, s=(hp, wp)), 0, -1)[:h, :w].astype(dtype)
+    if sharp_level:
+        out = out + image * (idx == 0).astype(dtype)[..., None]
+    return out
+
+
+def sharp_first_level(radius: np.ndarray, assignment: np.ndarray) -> bool:
+    """True when level 0 of `assignment` is non-empty and holds only radii `<= 1/2` (identity)."""
+    in_first = assignment == 0
+    return bool(in_first.any() and np.all(radius[in_first] <= 0.5))
