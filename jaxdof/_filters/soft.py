@@ -312,19 +312,25 @@ def _tangent(image, radius, d_image, d_radius, *, max_radius: float) -> Array:
 
 
 def _adjoint(image, radius, cotangent, *, max_radius: float) -> tuple[Array, Array]:
-    """`(dI*, dr*)`, the adjoint of `T` applied to `cotangent`."""
+    """`(dI*, dr*)`, the adjoint of `T` applied to `cotangent`.
+
+    `dr* = sum_c I_c sum_o w_o' (S_o^T ct)_c`: the loop accumulates `sum_o w_o' S_o^T ct` per
+    channel and the channel sum with the image is taken once after it; summing over the (short,
+    innermost) channel axis inside the loop cost more than the rest of the adjoint.
+    """
     offsets = tap_offsets(max_radius)
     pad = half_width(offsets)
     padded = _pad(cotangent, pad)
 
     def body(k, acc, mirrors, geom):
-        d_image, d_radius = acc
+        d_image, d_slope = acc
         w, dw = _weight_and_slope(*geom, radius, with_slope=True)
         g = _shift_sum(padded, mirrors, k, pad, +1, image.shape)
-        return d_image + g * w[..., None], d_radius + dw * jnp.sum(image * g, axis=-1)
+        return d_image + g * w[..., None], d_slope + g * dw[..., None]
 
-    init = (jnp.zeros_like(image), jnp.zeros_like(radius))
-    return _scan_classes(offsets, image.dtype, init, body)
+    init = (jnp.zeros_like(image), jnp.zeros_like(image))
+    d_image, d_slope = _scan_classes(offsets, image.dtype, init, body)
+    return d_image, jnp.sum(image * d_slope, axis=-1)
 
 
 def _tangent_impl(image, radius, d_image, d_radius, *, max_radius):
