@@ -128,6 +128,12 @@ def pixel_prefilter(image: ImageLike) -> Image:
     is this filter with a strength chosen per pixel from its circle (this one's `1/24` for large
     circles, a slight blur under half a pixel), which removes that bias. Kept for comparison.
     """
+    x, lap = _image_and_laplacian(image)
+    return x - lap / 24
+
+
+def _image_and_laplacian(image: ImageLike) -> tuple[jax.Array, jax.Array]:
+    """The checked image `(H, W[, C])` and its 5-point discrete Laplacian (edge pixels repeated)."""
     x = jnp.asarray(image)
     if x.ndim not in (2, 3):
         raise ValueError(f"image must be (H, W) or (H, W, C), got shape {x.shape}")
@@ -135,8 +141,7 @@ def pixel_prefilter(image: ImageLike) -> Image:
         raise ValueError(f"image must be floating point (linear light), got dtype {x.dtype}")
     pad = [(1, 1), (1, 1)] + [(0, 0)] * (x.ndim - 2)
     p = jnp.pad(x, pad, mode="edge")
-    lap = p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * x
-    return x - lap / 24
+    return x, p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * x
 
 
 _TABLE_MAX = 6.0  # beyond, the kernel variance is rho^2/4 + c, c continued from the table's end
@@ -282,11 +287,7 @@ def footprint_prefilter(image: ImageLike, radius: RadiusLike) -> Image:
     not the exact inverse of the box, and the Laplacian mixes neighbours across depth edges.
     Measured against Mitsuba in `fits/results/raytraced.md`.
     """
-    x = jnp.asarray(image)
-    if x.ndim not in (2, 3):
-        raise ValueError(f"image must be (H, W) or (H, W, C), got shape {x.shape}")
-    if not jnp.issubdtype(x.dtype, jnp.floating):
-        raise ValueError(f"image must be floating point (linear light), got dtype {x.dtype}")
+    x, lap = _image_and_laplacian(image)
     r = jnp.asarray(radius)
     if r.shape != x.shape[:2]:
         raise ValueError(
@@ -295,9 +296,6 @@ def footprint_prefilter(image: ImageLike, radius: RadiusLike) -> Image:
         )
     r = r.astype(x.dtype)
     c = (kernel_variance(r) - r * r / 4) / 2
-    pad = [(1, 1), (1, 1)] + [(0, 0)] * (x.ndim - 2)
-    p = jnp.pad(x, pad, mode="edge")
-    lap = p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * x
     if x.ndim == 3:
         c = c[..., None]
     return x - c * lap

@@ -1202,6 +1202,9 @@ def fit_lens(
     else:
         window = _window(_max_coc(start_params, d), cap)
 
+    def model_at(window: float) -> _Model:  # the forward model with a given filter window
+        return _Model(n_t, window, bool(exposure), method, len(spec.used), bool(footprint))
+
     # Coarse-to-fine: the multi-start solve runs on the coarsest level, and each finer level
     # starts from the level below's solution (and a near-tie alternative, if any); the last level
     # is the full-resolution problem with the full tolerance, so the answer and its statistics are
@@ -1214,9 +1217,7 @@ def fit_lens(
     # Shapes and values stay numpy; the layout keeps the full-resolution bound on f at every
     # level, so that a parameter vector means the same lens on every level.
     layouts = [layout] + [dataclasses.replace(layout, base=lv[4].astype(dtype)) for lv in pyr[1:]]
-    y0s = _Model(n_t, window, bool(exposure), method, len(spec.used), bool(footprint)).pack(
-        start_params.astype(dtype), layout
-    )
+    y0s = model_at(window).pack(start_params.astype(dtype), layout)
     notes = []
     rows = start_params  # (S, T, 4) the current starts' lenses, at the full-resolution pitch
     for lev in range(levels - 1, 0, -1):
@@ -1229,7 +1230,7 @@ def fit_lens(
             rows_l = np.asarray(rows, np.float64).copy()
             rows_l[..., 3] = rows_l[..., 3] * scale
             win_l = _window(_max_coc(rows_l, d_l), float(max(dep_l.shape)))
-        model_l = _Model(n_t, win_l, bool(exposure), method, len(spec.used), bool(footprint))
+        model_l = model_at(win_l)
         solver_l = _with_verbose(coarse_solver, verbose, model_l, layouts[lev], f"level {lev} ")
         args_l = (im_l, dep_l, tg_l, sw_l, layouts[lev])
         _, info_l = _fit_starts(model_l, solver_l, y0s, args_l, int(max_steps))
@@ -1240,7 +1241,7 @@ def fit_lens(
     if levels > 1 and not user_window:
         window = _window(_max_coc(rows, d), cap)
     for _ in range(3):
-        model = _Model(n_t, window, bool(exposure), method, len(spec.used), bool(footprint))
+        model = model_at(window)
         fit_solver = _with_verbose(solver, verbose, model, layout, "level 0 " if levels > 1 else "")
         solution, info = _fit_starts(model, fit_solver, y0s, args, int(max_steps))
         info = jax.device_get(info)  # a handful of small arrays, in one go
