@@ -22,7 +22,6 @@ Monte Carlo estimate of that average, measured from two seeds and reported.
 from __future__ import annotations
 
 import argparse
-import inspect
 import math
 import os
 import platform
@@ -446,7 +445,6 @@ def fit_one(
     jax.clear_caches()
     # Full resolution only: the coarse-to-fine pyramid came to fit_lens after most of the cached
     # fits were made; one setting for every treatment keeps the table a comparison of forward models.
-    extra = {"pyramid": 1} if "pyramid" in inspect.signature(fit_lens).parameters else {}
     try:
         res = fit_lens(
             f64(image),
@@ -457,7 +455,7 @@ def fit_one(
             starts=starts,
             method=method,
             footprint=footprint == "prefilter",
-            **extra,
+            pyramid=1,
         )
     finally:
         fit_module.render = saved
