@@ -11,8 +11,15 @@ from jax.test_util import check_grads
 from jaxdof import ThinLens, coc_filter, render
 from jaxdof._filters import tabulated
 from jaxdof._filters.auto import choose_method, max_layers
+from jaxdof._filters.common import tap_offsets
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
-from jaxdof._filters.layered import assign_numpy, sharp_first_level
+from jaxdof._filters.layered import (
+    UNROLL_LEVELS,
+    assign_levels,
+    assign_numpy,
+    fft_length,
+    sharp_first_level,
+)
 from jaxdof._filters.tabulated import radius_levels, tabulated_filter
 
 
@@ -253,6 +260,43 @@ def test_layered_equals_soft_with_exactly_L_levels(jit):
     assert _err(coc_filter(image, radius, method="layered", layers=3), soft) > 1e-2
 
 
+def test_layered_scan_path_equals_soft():
+    """More FFT levels than are unrolled: the scan over levels gives the same scatter."""
+    radii = [0.0] + [1.0 + 0.5 * k for k in range(UNROLL_LEVELS + 2)]
+    image, radius = _levels_scene(radii, 24, 23)
+    out = coc_filter(image, radius, method="layered", layers=len(radii), max_radius=radii[-1])
+    assert _err(out, coc_filter(image, radius)) < 1e-12
+
+
+@pytest.mark.parametrize("traced", [False, True])
+def test_layered_level_radius_is_exact_in_float32(traced):
+    """A level of 1e5 equal float32 radii is blurred with exactly that radius: a plain float32 mean
+    drifts by ~1e-4 relative, which put the layered render 1.5e-4 off the soft one at R = 6."""
+    rng = np.random.default_rng(7)
+    values = np.float32([0.0, 1.4895833, 5.958332, 7.999999])
+    idx = rng.integers(0, 4, (320, 320))
+    radius = values[idx]
+    assignment = None if traced else assign_numpy(radius, 4)
+    _, levels = jax.jit(lambda r: assign_levels(r, 4, assignment))(jnp.asarray(radius))
+    assert np.array_equal(np.asarray(levels), values)
+    # and the render: the soft filter's to float32 FFT rounding
+    image = rng.uniform(size=(320, 320, 3)).astype(np.float32)
+    out = coc_filter(image, radius, method="auto", max_radius=8.0)
+    assert choose_method(radius, max_radius=8.0) == "layered"
+    assert _err(out, coc_filter(image, radius, max_radius=8.0)) < 2e-6
+
+
+def test_fft_length_is_5_smooth_and_minimal():
+    for n in range(1, 400):
+        m = fft_length(n)
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        assert m >= n and k == 1
+        assert all(fft_length(j) == m for j in range(n, m + 1))  # nothing 5-smooth in between
+
+
 def test_layered_copies_the_sharp_level():
     """On a concrete map the level of radii <= 1/2 is copied, not convolved (one FFT fewer); the
     result is the all-FFT one (a traced map) and the soft filter's."""
@@ -299,15 +343,20 @@ def test_layered_keeps_sharp_pixels_sharp_when_binning():
 
 
 @pytest.mark.parametrize("select_max", [16, 0], ids=["select-chain", "take"])
-def test_tabulated_equals_soft(monkeypatch, select_max):
+@pytest.mark.parametrize("max_radius", [6.5, 2.0, 2.5], ids=["class-loop", "fused-21", "fused-25"])
+def test_tabulated_equals_soft(monkeypatch, select_max, max_radius):
     """The looked-up weights are the soft filter's: same result, depth edges and identity level
-    included, through either look-up (a chain of selects for few levels, a gather for many)."""
+    included, through either look-up (a chain of selects for few levels, a gather for many) and
+    either loop (the class loop, or every tap fused for windows of at most 25 taps)."""
     monkeypatch.setattr(tabulated, "SELECT_MAX_LEVELS", select_max)
-    image, radius = _levels_scene([0.2, 1.7, 3.25, 6.0, 6.5])
+    radii = sorted({r for r in [0.2, 1.7, 3.25, 6.0, 6.5] if r <= max_radius} | {max_radius})
+    image, radius = _levels_scene(radii)
     levels, index = radius_levels(radius)
-    assert np.array_equal(levels, [0.0, 1.7, 3.25, 6.0, 6.5])
-    out = tabulated_filter(jnp.asarray(image), max_radius=6.5, levels=levels, index=index)
-    assert _err(out, coc_filter(image, radius, max_radius=6.5)) < 1e-13
+    assert np.array_equal(levels, [0.0] + radii[1:])
+    fused = len(tap_offsets(max_radius)) <= tabulated.FUSED_MAX_TAPS
+    assert fused == (max_radius < 3)
+    out = tabulated_filter(jnp.asarray(image), max_radius=max_radius, levels=levels, index=index)
+    assert _err(out, coc_filter(image, radius, max_radius=max_radius)) < 1e-13
 
 
 def test_auto_picks_what_the_scene_needs():

@@ -17,8 +17,9 @@ of their own, the range of the others is cut into equal bins for the remaining l
 bin is blurred with the **mean radius of its pixels**; the error is that of a radius off by up to
 half a bin width, and sharp pixels stay sharp.
 
-The convolutions run in the Fourier domain on a frame padded by the window (`2W` zeros, so no
-wrap-around): `L` forward FFTs of the masked image, one product per level, the sum, one inverse FFT.
+The convolutions run in the Fourier domain on a frame padded by the window's half-width `W` (a tap
+that wraps around either end lands in the zeros), rounded up to a 5-smooth length: `L` forward
+FFTs of the masked image, one product per level, the sum, one inverse FFT.
 Cost `O(L H W log(H W))`, independent of the radius except through the padding.
 
 **Gradients:** linear in `image` (exact). In `radius`, the assignment to levels is piecewise constant
@@ -61,8 +62,14 @@ def assign_levels(
     else:
         idx = _assign_traced(lax.stop_gradient(r), layers)
         counts = jax.ops.segment_sum(jnp.ones_like(r).reshape(-1), idx.reshape(-1), layers)
-    sums = jax.ops.segment_sum(r.reshape(-1), idx.reshape(-1), num_segments=layers)
-    levels = sums / jnp.where(counts > 0, counts, 1)
+    # The mean as (a pixel's radius) + mean(deviation from it): a float32 sum of ~1e5 equal radii
+    # drifts by ~1e-4 relative, which moved a 6 px disc enough to err by 1.5e-4 of the image;
+    # the deviations of an exact level are exactly zero. Same value and derivative (1/count each).
+    flat_idx = idx.reshape(-1)
+    ref = lax.stop_gradient(jax.ops.segment_max(r.reshape(-1), flat_idx, num_segments=layers))
+    ref = jnp.where(counts > 0, ref, 0)
+    dev = jax.ops.segment_sum((r - ref[idx]).reshape(-1), flat_idx, num_segments=layers)
+    levels = ref + dev / jnp.where(counts > 0, counts, 1)
     return idx, levels
 
 
@@ -114,6 +121,24 @@ def disc_kernels(levels: Float[Array, " l"], half_width: int) -> Float[Array, "l
     return jnp.where(big, area / (math.pi * rs * rs), delta)
 
 
+#: Up to this many FFT levels the level loop is unrolled (measured on CPU, 256^2 RGB float32, three
+#: planes: 0.8x the time of the scan at R = 8), beyond it a scan keeps one spectrum live at a time.
+UNROLL_LEVELS = 8
+
+
+def fft_length(n: int) -> int:
+    """The smallest `m >= n` whose prime factors are 2, 3 and 5 (fast FFT lengths)."""
+    m = n
+    while True:
+        k = m
+        for p in (2, 3, 5):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m += 1
+
+
 def layered_filter(
     image: Float[Array, "h w c"],
     radius: Float[Array, "h w"],
@@ -135,7 +160,9 @@ def layered_filter(
     idx, levels = assign_levels(radius, layers, assignment)
     first = int(sharp_level)  # the first level that needs a convolution
     kernels = disc_kernels(levels[first:], half)  # (L - first, k, k)
-    hp, wp = h + 2 * half, w + 2 * half
+    # `W` zeros past the image suffice: a tap wrapping around either end lands in them. At least the
+    # kernel's `2W + 1`, rounded up to a 5-smooth FFT length.
+    hp, wp = (fft_length(max(n + half, 2 * half + 1)) for n in (h, w))
     # kernel centred at index 0 with negative offsets wrapped: circular = linear conv on the padding
     n_conv = layers - first
     kpad = jnp.zeros((n_conv, hp, wp), dtype).at[:, : 2 * half + 1, : 2 * half + 1].set(kernels)
@@ -143,14 +170,20 @@ def layered_filter(
     kf = jnp.fft.rfft2(kpad)  # (L, hp, wp//2+1)
     chw = jnp.moveaxis(image, -1, 0)  # FFTs over the last two axes run ~2x faster on CPU
 
-    def add_level(acc, xs):
-        level, kf_l = xs
+    def add_level(acc, level, kf_l):
         layer = chw * (idx == level).astype(dtype)[None]
-        layer = jnp.pad(layer, ((0, 0), (0, 2 * half), (0, 2 * half)))
-        return acc + jnp.fft.rfft2(layer) * kf_l[None], None
+        return acc + jnp.fft.rfft2(layer, s=(hp, wp)) * kf_l[None]
 
-    acc0 = jnp.zeros((c, hp, wp // 2 + 1), kf.dtype)
-    acc, _ = lax.scan(add_level, acc0, (jnp.arange(first, layers, dtype=jnp.int32), kf))
+    acc = jnp.zeros((c, hp, wp // 2 + 1), kf.dtype)
+    if n_conv <= UNROLL_LEVELS:  # straight-line code: XLA overlaps the levels' FFTs
+        for j in range(n_conv):
+            acc = add_level(acc, first + j, kf[j])
+    else:  # one level's spectrum live at a time
+        acc, _ = lax.scan(
+            lambda a, xs: (add_level(a, *xs), None),
+            acc,
+            (jnp.arange(first, layers, dtype=jnp.int32), kf),
+        )
     out = jnp.moveaxis(jnp.fft.irfft2(acc, s=(hp, wp)), 0, -1)[:h, :w].astype(dtype)
     if sharp_level:
         out = out + image * (idx == 0).astype(dtype)[..., None]
