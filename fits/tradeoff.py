@@ -240,7 +240,9 @@ def auto_vs_soft(R: float, scenes, size: int, repeat: int) -> list[dict]:
     out = []
     for scene in scenes:
         depth = depth_map(scene, size)
-        radius = np.asarray(coc_radius(jnp.asarray(depth, jnp.float32), lens_for(depth, R)), np.float32)
+        radius = np.asarray(
+            coc_radius(jnp.asarray(depth, jnp.float32), lens_for(depth, R)), np.float32
+        )
         soft_c = jax.jit(lambda img, r=radius: coc_filter(img, r, method="soft", max_radius=R))
         auto_c = jax.jit(lambda img, r=radius: coc_filter(img, r, method="auto", max_radius=R))
         # soft as it runs inside render/fit_lens: the radius map an argument, not a constant that

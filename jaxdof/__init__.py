@@ -13,10 +13,10 @@ from ._corrections import (
     footprint_radius as footprint_radius,
 )
 from ._filters import (
-    choose_method as choose_method,
-    coc_filter as coc_filter,
     DIFFERENTIABLE_IN_RADIUS as DIFFERENTIABLE_IN_RADIUS,
     METHODS as METHODS,
+    choose_method as choose_method,
+    coc_filter as coc_filter,
 )
 from ._fit import FitResult as FitResult, fit_lens as fit_lens, solve_lens as solve_lens
 from ._lens import (

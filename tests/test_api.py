@@ -31,7 +31,9 @@ def test_options_are_keyword_only(name):
         if p.default is not inspect.Parameter.empty
         and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
     ]
-    assert not positional_defaults, f"jaxdof.{name}: options {positional_defaults} should be keyword-only"
+    assert not positional_defaults, (
+        f"jaxdof.{name}: options {positional_defaults} should be keyword-only"
+    )
 
 
 def test_version():

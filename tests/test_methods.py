@@ -11,8 +11,8 @@ from jax.test_util import check_grads
 from jaxdof import ThinLens, coc_filter, render
 from jaxdof._filters import tabulated
 from jaxdof._filters.auto import choose_method, max_layers
-from jaxdof._filters.common import tap_offsets
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
+from jaxdof._filters.common import tap_offsets
 from jaxdof._filters.layered import (
     UNROLL_LEVELS,
     assign_levels,

@@ -101,7 +101,7 @@ def test_hand_written_derivatives_equal_autodiff_of_the_plain_gather():
     # forward mode (what Levenberg-Marquardt uses)
     jf, jg = jax.jvp(f, (image, radius), (ti, tr))[1], jax.jvp(g, (image, radius), (ti, tr))[1]
     # reverse mode, with respect to both inputs and to each alone
-    loss = lambda fn: (lambda i, r: jnp.sum(jnp.sin(fn(i, r))))
+    loss = lambda fn: lambda i, r: jnp.sum(jnp.sin(fn(i, r)))
     rf = jax.grad(loss(f), argnums=(0, 1))(image, radius)
     rg = jax.grad(loss(g), argnums=(0, 1))(image, radius)
     r_only = jax.grad(loss(f), argnums=1)(image, radius)
@@ -113,9 +113,17 @@ def test_hand_written_derivatives_equal_autodiff_of_the_plain_gather():
     # second order: the primitive's own JVP (a Hessian-vector product in the radius)
     hvp = lambda fn: jax.jvp(jax.grad(lambda r: loss(fn)(image, r)), (radius,), (tr,))[1]
     # vmap of a gradient (the vprim batching rule)
-    vg = jax.vmap(jax.grad(loss(f), argnums=1))(jnp.stack([image, 2 * image]), jnp.stack([radius] * 2))
+    vg = jax.vmap(jax.grad(loss(f), argnums=1))(
+        jnp.stack([image, 2 * image]), jnp.stack([radius] * 2)
+    )
     vref = jax.grad(loss(g), argnums=1)(2 * image, radius)
     # all are sums of the same few O(1) terms in another order: float64 rounding
-    for got, want in [(jf, jg), *zip(rf, rg), (r_only, rg[1]), *zip(tf, tg), (hvp(f), hvp(g)),
-                      (vg[1], vref)]:
+    for got, want in [
+        (jf, jg),
+        *zip(rf, rg),
+        (r_only, rg[1]),
+        *zip(tf, tg),
+        (hvp(f), hvp(g)),
+        (vg[1], vref),
+    ]:
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
