@@ -72,8 +72,9 @@ def render(
     depth = _error_if_invalid(depth, lens)  # traced: error at run time (equinox.error_if)
     radius = coc_radius(depth, lens).astype(jnp.result_type(image.dtype, depth.dtype))
     knobs = dict(samples=samples, key=key, pattern=pattern, blades=blades, rotation=rotation)
-    if footprint:
-        image = footprint_prefilter(image, radius)
+    if footprint:  # corrected for the radius the filter spreads (clamped to the window)
+        r = radius if max_radius is None else jnp.minimum(radius, max_radius)
+        image = footprint_prefilter(image, r)
     return coc_filter(
         image,
         radius,

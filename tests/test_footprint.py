@@ -29,6 +29,20 @@ def test_render_footprint_is_the_prefilter_then_the_filter():
     assert float(jnp.max(jnp.abs(plain - composed))) > 1e-3
 
 
+def test_render_footprint_corrects_the_clamped_radius():
+    """Radii beyond `max_radius` are spread at `max_radius`: the correction is for that radius."""
+    image, depth = scene()
+    true = lens()
+    r = coc_radius(depth, true)
+    window = 0.5 * float(jnp.max(r))  # clamps the largest circles
+    assert float(jnp.mean(r > window)) > 0.05
+    clamped = jnp.minimum(r, window)
+    composed = coc_filter(footprint_prefilter(image, clamped), r, max_radius=window)
+    np.testing.assert_array_equal(
+        render(image, depth, true, max_radius=window, footprint=True), composed
+    )
+
+
 def test_render_footprint_every_input():
     """Image, depth and every lens field (float64, forward and reverse mode), on a scene with
     depths at infinity, at the focus plane and just beyond the focal length (clamped)."""
