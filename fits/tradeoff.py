@@ -417,6 +417,26 @@ def goal_lines(rows, auto_rows, front):
         "- rows on their panel's Pareto front, per method: "
         + ", ".join(f"{m} {sum(v)}/{len(v)}" for m, v in by_method.items())
     )
+    # how near: a row's time over that of the fastest row of its panel at least as accurate (1 on
+    # the front); per method its best knob in each panel, then the median and range over panels
+    near = {}
+    for scene, R in panels:
+        panel = [r for r in rows if r["scene"] == scene and r["R"] == R]
+        best = {}
+        for r in panel:
+            floor = min(o["fwd_ms_per_mp"] for o in panel if o["rmse"] <= r["rmse"])
+            gap = max(r["fwd_ms_per_mp"] / floor, 1.0)
+            best[r["method"]] = min(best.get(r["method"], np.inf), gap)
+        for m, g in best.items():
+            near.setdefault(m, []).append(g)
+    out.append(
+        "- distance to the front (a row's forward time over that of the fastest row of its panel "
+        "that is at least as accurate; 1.0 = on the front), each method's best knob per panel, "
+        "median (range) over the panels: "
+        + ", ".join(
+            f"{m} {np.median(g):.1f}x ({min(g):.1f}-{max(g):.1f})" for m, g in near.items()
+        )
+    )
     few = [a for a in auto_rows if a["levels"] <= 4]
     out.append(
         "- auto vs soft on scenes of <= 4 radius levels: "
