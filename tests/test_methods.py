@@ -12,7 +12,7 @@ from jaxdof import ThinLens, coc_filter, render
 from jaxdof._filters import tabulated
 from jaxdof._filters.auto import choose_method, max_layers
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
-from jaxdof._filters.common import tap_offsets
+from jaxdof._filters.common import tap_offsets, window_half_width
 from jaxdof._filters.layered import (
     UNROLL_LEVELS,
     assign_levels,
@@ -76,6 +76,42 @@ def test_supersample_kernel_converges_like_one_over_n():
     # i.e. O(1/n); 8x more samples must give at least 4x less error (the rate, with slack for the
     # lattice's irregular phase against the circle)
     assert e64 < e8 / 4, (e8, e64)
+
+
+def _supersample_reference(image, radius, n, half):
+    """The n x n count, scattered source by source in numpy (no symmetry, no row ranges)."""
+    h, w, _ = image.shape
+    sub = (np.arange(n) + 0.5) / n - 0.5
+    o = np.arange(-half, half + 1)
+    # (offset y, offset x, sub y, sub x): squared distance of every sub-sample of the window
+    d2 = (o[:, None, None, None] + sub[None, None, :, None]) ** 2 + (
+        o[None, :, None, None] + sub[None, None, None, :]
+    ) ** 2
+    out = np.zeros_like(image)
+    for y in range(h):
+        for x in range(w):
+            r = radius[y, x]
+            if r <= 0.5:
+                out[y, x] += image[y, x]
+                continue
+            count = (d2 <= r * r).sum((2, 3))
+            share = count / count.sum()
+            for iy, oy in enumerate(o):
+                for ix, ox in enumerate(o):
+                    if 0 <= y + oy < h and 0 <= x + ox < w:
+                        out[y + oy, x + ox] += image[y, x] * share[iy, ix]
+    return out
+
+
+@pytest.mark.parametrize("n", [1, 3, 4])
+def test_supersample_equals_a_brute_force_count(n):
+    """The per-class count (mirrored taps, row ranges) is the plain count of sub-pixel centres."""
+    image, radius = _scene(9, 11, 3.4)
+    radius[::4] = 0.4
+    radius[1::3, ::2] = 2.0  # sub-sample centres exactly on the circle for even n
+    out = coc_filter(image, radius, method="supersample", samples=n, max_radius=3.4)
+    ref = _supersample_reference(image, radius, n, window_half_width(3.4))
+    assert _err(out, ref) < 1e-14
 
 
 def test_supersample_with_one_sample_is_hard():

@@ -15,7 +15,9 @@ Radii `<= 1/2` leave their pixel untouched, as in the soft filter.
 
 The count is exact integer arithmetic done row by row: on the sub-row at height `y` the aperture
 spans `[xl(y), xr(y)]` and the sub-pixel columns inside it are a range of integers, so a tap costs
-`O(n)`, not `O(n^2)`. With `blades` the aperture is the inscribed polygon (see `shape.py`).
+`O(n)`, not `O(n^2)`. For the disc the count is computed once per mirror class of offsets (up to 8
+taps share it, as in the soft filter). With `blades` the aperture is the inscribed polygon (see
+`shape.py`), every tap counted.
 
 **Gradients:** linear in `image`. Piecewise constant in `radius` (zero derivative almost
 everywhere): `DIFFERENTIABLE_IN_RADIUS["supersample"]` is `False`.
@@ -30,6 +32,7 @@ from jaxtyping import Array, Float
 
 from .common import tap_offsets, window_half_width
 from .shape import row_extent
+from .soft import mirrored_scatter
 from .taps import gather_taps
 
 
@@ -74,6 +77,9 @@ def supersample_filter(
     small = r <= 0.5
     inv_total = jnp.where(small, 0, 1 / jnp.where(small, 1, total))
 
+    if blades is None:  # the disc and the sub-pixel grid share the grid's 8 reflections
+        return _mirrored(image, r, inv_total, offsets, n)
+
     # per tap: its n sub-row heights, and the global sub-column range of its pixel
     ys = np.stack([_row_heights(int(oy) * n, n, n) for oy, _ in offsets])
     col0 = offsets[:, 1].astype(np.float64) * n
@@ -94,3 +100,25 @@ def supersample_filter(
         per_tap=(jnp.asarray(ys, dtype), jnp.asarray(col0, dtype), jnp.asarray(is_centre, dtype)),
         source=(r, inv_total),
     )
+
+
+def _mirrored(image, r, inv_total, offsets: np.ndarray, n: int) -> Array:
+    """The same scatter for a circular aperture, one count per mirror class of offsets.
+
+    The sub-pixel centres are symmetric under the grid's reflections, and so is the disc: the count
+    of the pixel at `(oy, ox)` is that of `(|oy|, |ox|)` and of `(|ox|, |oy|)`. As in the soft
+    filter, the weighted source is formed once per class and read at each mirrored offset.
+    """
+    sub = (np.arange(n) + 0.5) / n - 0.5  # sub-row heights within a pixel, float64
+
+    def source(geom, image, r, inv):
+        _, bx, _, by, _, centre = geom
+        oy, ox = by - 0.5, bx - 0.5  # the class's canonical offset, 0 <= oy <= ox
+        y = oy + jnp.asarray(sub, image.dtype)[:, None, None]
+        xl, xr = row_extent(y, r[None], None, 0.0)
+        lo, hi = _column_range(xl, xr, n)
+        c0 = ox * n
+        cnt = jnp.maximum(jnp.minimum(hi, c0 + n - 1) - jnp.maximum(lo, c0) + 1, 0).sum(0)
+        return image * jnp.where(r <= 0.5, centre, cnt * inv)[..., None]
+
+    return mirrored_scatter(source, offsets, image.shape, image.dtype, (image, r, inv_total))
