@@ -80,7 +80,7 @@ WHY_NOT_10X = (
     "jaxpr), so the weights and their slopes are computed once per offset and only the cheap accumulation is "
     "doubled (first table: the vmapped pair costs little more than the tangent of one JVP, and far less than two "
     "separate JVPs; `jax.jacfwd` discards the primal, which XLA then drops, so that column is the tangent pass "
-    "alone). With the damped solve on top, an LM step still costs 3-3.5 renders (the per-step bullets: LM step "
+    "alone). With the damped solve on top, an LM step still costs 2-5 renders (the per-step bullets: LM step "
     "time over the render time of the first table), about what a trf iteration costs scipy (a 2-point Jacobian "
     "and a trial point, three renders), and LM takes about as many steps as trf takes Jacobians. Coarse-to-fine moves the search from wrong starts to images 4^l times "
     "cheaper, but the full-resolution level still takes 6-11 LM steps. The coarse minimum is off the "
