@@ -61,6 +61,11 @@ def machine_info() -> dict[str, str]:
         "jax / jaxlib": f"{jax.__version__} / {jax.lib.__version__}",
         "jaxdof": jaxdof.__version__,
         "XLA_FLAGS": os.environ.get("XLA_FLAGS", "(unset)"),
+        # glibc's allocator settings change the soft filter's cost at megapixel sizes (README)
+        "glibc MALLOC_* environment": ", ".join(
+            f"{k}={v}" for k, v in sorted(os.environ.items()) if k.startswith("MALLOC_")
+        )
+        or "(unset)",
     }
 
 
