@@ -433,9 +433,7 @@ def goal_lines(rows, auto_rows, front):
         "- distance to the front (a row's forward time over that of the fastest row of its panel "
         "that is at least as accurate; 1.0 = on the front), each method's best knob per panel, "
         "median (range) over the panels: "
-        + ", ".join(
-            f"{m} {np.median(g):.1f}x ({min(g):.1f}-{max(g):.1f})" for m, g in near.items()
-        )
+        + ", ".join(f"{m} {np.median(g):.1f}x ({min(g):.1f}-{max(g):.1f})" for m, g in near.items())
     )
     few = [a for a in auto_rows if a["levels"] <= 4]
     out.append(
