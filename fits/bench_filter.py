@@ -126,9 +126,16 @@ def main(argv=None) -> None:
     parser.add_argument("--radii", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=pathlib.Path, default=RESULTS / "bench_filter.md")
+    parser.add_argument(
+        "--retain-memory",
+        action="store_true",
+        help="call jaxdof.retain_freed_memory() first (glibc keeps freed memory for reuse)",
+    )
     args = parser.parse_args(argv)
+    retained = jaxdof.retain_freed_memory() if args.retain_memory else False
 
     info = machine_info()
+    info["jaxdof.retain_freed_memory()"] = "called, accepted" if retained else "not called"
     rng = np.random.default_rng(0)
     h = w = args.size
     mpix = h * w / 1e6

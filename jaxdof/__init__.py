@@ -1,5 +1,6 @@
 import importlib.metadata
 
+from ._allocator import retain_freed_memory as retain_freed_memory
 from ._batch import (
     batch_mesh as batch_mesh,
     fit_batch as fit_batch,
