@@ -8,7 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array
+from jaxtyping import Array, ArrayLike
 
 
 def is_concrete(*xs) -> bool:
@@ -23,6 +23,16 @@ def window_half_width(max_radius: float) -> int:
     than the radius, so `W = ceil(R + 1/2) - 1` (never more than `ceil(R)`, the bound in the docs).
     """
     return max(math.ceil(max_radius + 0.5) - 1, 0)
+
+
+def half_width(offsets: np.ndarray) -> int:
+    """The largest `|offset|` along either axis: the zero padding a gather over `offsets` reads."""
+    return int(np.abs(offsets).max()) if offsets.size else 0
+
+
+def pad_rows_cols(x: ArrayLike, pad: int) -> Array:
+    """`x` (rows and columns leading, any trailing axes) with a zero border of `pad` pixels."""
+    return jnp.pad(x, ((pad, pad), (pad, pad)) + ((0, 0),) * (x.ndim - 2))
 
 
 def tap_offsets(max_radius: float) -> np.ndarray:

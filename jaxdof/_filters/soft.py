@@ -41,7 +41,7 @@ from jax.interpreters import ad
 from jaxtyping import Array, Float
 
 from .._overlap import _c, _horner, _num_terms
-from .common import tap_offsets
+from .common import half_width, pad_rows_cols, tap_offsets
 
 
 def _offset_geometry(offsets: np.ndarray, dtype) -> tuple[Array, ...]:
@@ -172,8 +172,7 @@ def gather(image, radius, offsets: np.ndarray, weight_fn) -> Array:
     """`out[p] = sum_o image[p - o] * weight_fn(*geometry(o), r[p - o])` as a checkpointed scan."""
     h, w, c = image.shape
     pad = half_width(offsets)
-    pimg = jnp.pad(image, ((pad, pad), (pad, pad), (0, 0)))
-    prad = jnp.pad(radius, ((pad, pad), (pad, pad)))
+    pimg, prad = pad_rows_cols(image, pad), pad_rows_cols(radius, pad)
     geometry = _offset_geometry(offsets, image.dtype)
     starts = jnp.asarray(pad - offsets, jnp.int32)
     zero = jnp.zeros((), jnp.int32)
@@ -246,16 +245,6 @@ def _shift_sum(padded, mirrors, k: int, pad: int, sign: int, shape) -> Array:
     return total
 
 
-def half_width(offsets: np.ndarray) -> int:
-    """The largest `|offset|` along either axis: the zero padding a gather over `offsets` reads."""
-    return int(np.abs(offsets).max()) if offsets.size else 0
-
-
-def _pad(x, pad: int) -> Array:
-    """`x` (rows and columns leading) with a zero border of `pad` rows and columns."""
-    return jnp.pad(x, ((pad, pad), (pad, pad)) + ((0, 0),) * (x.ndim - 2))
-
-
 def mirrored_scatter(source, offsets: np.ndarray, shape, dtype, inputs: tuple) -> Array:
     """`out[p] = sum_o x_o[p - o]` with `x_o = source(geometry(o), *padded inputs)`.
 
@@ -264,7 +253,7 @@ def mirrored_scatter(source, offsets: np.ndarray, shape, dtype, inputs: tuple) -
     class and read at each mirrored offset (`_shift_sum`). `shape` is the output's `(H, W, C)`.
     """
     pad = half_width(offsets)
-    padded = tuple(_pad(x, pad) for x in inputs)
+    padded = tuple(pad_rows_cols(x, pad) for x in inputs)
 
     def body(k, acc, mirrors, geom):
         return acc + _shift_sum(source(geom, *padded), mirrors, k, pad, -1, shape)
@@ -320,7 +309,7 @@ def _adjoint(image, radius, cotangent, *, max_radius: float) -> tuple[Array, Arr
     """
     offsets = tap_offsets(max_radius)
     pad = half_width(offsets)
-    padded = _pad(cotangent, pad)
+    padded = pad_rows_cols(cotangent, pad)
 
     def body(k, acc, mirrors, geom):
         d_image, d_slope = acc

@@ -20,8 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .common import tap_offsets
-from .soft import _offset_geometry, _pad, half_width, mirror_classes, mirrored_scatter, tap_weight
+from .common import half_width, pad_rows_cols, tap_offsets
+from .soft import _offset_geometry, mirror_classes, mirrored_scatter, tap_weight
 
 
 def radius_levels(radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +78,7 @@ def _fused_gather(image, rho, idx, offsets: np.ndarray) -> Array:
     """The same sum, every tap written out: XLA fuses the look-ups and products into one pass."""
     h, w, _ = image.shape
     pad = half_width(offsets)
-    pimg, pidx = _pad(image, pad), _pad(idx, pad)
+    pimg, pidx = pad_rows_cols(image, pad), pad_rows_cols(idx, pad)
     out = jnp.zeros_like(image)
     for canonical, mirrors in mirror_classes(offsets).values():
         geometry = _offset_geometry(canonical, image.dtype)

@@ -17,9 +17,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array
 
-
-def _pad_hw(x: Array, pad: int) -> Array:
-    return jnp.pad(x, ((pad, pad), (pad, pad)) + ((0, 0),) * (x.ndim - 2))
+from .common import half_width, pad_rows_cols
 
 
 def _slice_hw(x: Array, start: Array, h: int, w: int) -> Array:
@@ -50,9 +48,9 @@ def gather_taps(
     """
     h, w, c = image.shape
     offsets = np.asarray(offsets, np.int32).reshape(-1, 2)
-    pad = int(np.abs(offsets).max()) if offsets.size else 0
-    pimg = _pad_hw(image, pad)
-    psrc = tuple(_pad_hw(s, pad) for s in source)
+    pad = half_width(offsets)
+    pimg = pad_rows_cols(image, pad)
+    psrc = tuple(pad_rows_cols(s, pad) for s in source)
     starts = jnp.asarray(pad - offsets, jnp.int32)
     output = tuple(output)
 
