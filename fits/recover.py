@@ -288,7 +288,7 @@ def outside_compiled(reps=15):
     return dict(total=float(np.median(total)), outside=float(np.median(outside)))
 
 
-def cost_study(quick):
+def cost_study(quick, sizes=None):
     """Section 3: wall time and evaluations of fit_lens (one start, default starts) and scipy.
 
     For every size, scene and trial: one warm-up call of each (compilation excluded), then
@@ -298,7 +298,8 @@ def cost_study(quick):
     rng = np.random.default_rng(20261123)
     reps = 3
     # (image size, trials per scene)
-    sizes = ((H, 2 if quick else 4), (96, 1 if quick else 2), (192, 1))
+    trials = {H: 2 if quick else 4, 96: 1 if quick else 2}
+    sizes = [(z, trials.get(z, 1)) for z in (sizes or (H, 96, 192))]
     sigma_t = 0.01
     timing, unit = [], {}
     for size, n_trials in sizes:
@@ -393,6 +394,17 @@ def cost_study(quick):
         reps=reps,
         load=os.getloadavg()[0],
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        **_accelerator(),
+    )
+
+
+def _accelerator() -> dict:
+    """`{"machine": ...}` naming the accelerator when JAX runs on one, else nothing (the CPU run)."""
+    device = jax.devices()[0]
+    if device.platform == "cpu":
+        return {}
+    return dict(
+        machine=f"one {device.device_kind} ({jax.default_backend()}, jax {jax.__version__})"
     )
 
 
@@ -411,17 +423,27 @@ def main(argv=None):
         help="re-run only section 3 (cost against scipy) and rewrite the report, keeping the saved "
         "results of sections 1 and 2",
     )
+    ap.add_argument(
+        "--tag",
+        default="",
+        help="with --cost-only: suffix of the outputs (e.g. _gpu on a GPU machine); sections 1 and 2 "
+        "are copied from the untagged run",
+    )
+    ap.add_argument(
+        "--cost-sizes", type=int, nargs="+", default=None, help="image sides of section 3"
+    )
     args = ap.parse_args(argv)
     suffix = "_quick" if args.quick else ""
-    raw_path = Path(__file__).parent / "results" / f"recover{suffix}_raw.json"
+    results = Path(__file__).parent / "results"
+    raw_path = results / f"recover{suffix}_raw.json"
     if args.report_only:
         return report(json.loads(raw_path.read_text()), args.quick)
     if args.cost_only:
         raw = json.loads(raw_path.read_text())
-        raw["cost"] = cost_study(args.quick)
+        raw["cost"] = cost_study(args.quick, args.cost_sizes)
         raw.pop("timing", None)  # the format of section 3 before the cost study was split out
-        raw_path.write_text(json.dumps(raw))
-        return report(raw, args.quick)
+        (results / f"recover{suffix}{args.tag}_raw.json").write_text(json.dumps(raw))
+        return report(raw, args.quick, args.tag)
     trials = args.trials or (6 if args.quick else 30)
     n_bracket = min(trials, 3 if args.quick else 10)
     (Path(__file__).parent / "results").mkdir(exist_ok=True)
@@ -552,7 +574,7 @@ def main(argv=None):
     report(raw, args.quick)
 
 
-def report(raw, quick):
+def report(raw, quick, tag=""):
     rows = [
         {k: (np.array(v) if isinstance(v, list) else v) for k, v in r.items()} for r in raw["rows"]
     ]
@@ -564,6 +586,7 @@ def report(raw, quick):
         raw["trials"],
         raw["total"],
         quick,
+        tag,
     )
 
 
@@ -579,10 +602,10 @@ def _cells(timing, sizes):
             yield size, name, (lambda k, ts=ts: float(np.median([t[k] for t in ts])))
 
 
-def write(rows, bracket, cost, compile_s, trials, total, quick):
+def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
     out = Path(__file__).parent / "results"
     out.mkdir(exist_ok=True)
-    suffix = "_quick" if quick else ""
+    suffix = ("_quick" if quick else "") + tag
     md = []
     md.append("# Lens recovery: accuracy against the Cramér-Rao bound, and cost against scipy\n")
     md.append(
@@ -657,8 +680,13 @@ def write(rows, bracket, cost, compile_s, trials, total, quick):
     sizes = list(dict.fromkeys(t["size"] for t in timing))
     size_txt = ", ".join(f"{z} x {z}" for z in sizes)
     md.append(
-        f"Measured {cost['date']} (load average {cost['load']:.1f} on the 2 shared cores at the end of this section). "
-        f"float64, sigma = 0.01, `max_radius=6`; the four scenes at {size_txt} (the texture grain and the lens stay "
+        f"Measured {cost['date']} "
+        + (
+            f"on {cost['machine']}, its own machine (sections 1 and 2 above are the CPU run's, copied). "
+            if "machine" in cost
+            else f"(load average {cost['load']:.1f} on the 2 shared cores at the end of this section). "
+        )
+        + f"float64, sigma = 0.01, `max_radius=6`; the four scenes at {size_txt} (the texture grain and the lens stay "
         "the same, so the circles stay at up to ~3.6 px: a bigger image is a wider field of view, not a finer one). "
         "Both solvers start from the same wrong lens, fit the same target in the same log coordinates, float64, on the "
         "same jitted `jaxdof.render`. `fit_lens` from one start (`starts=1`; default LM, `rtol=atol=1e-8`), at full "

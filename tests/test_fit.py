@@ -5,6 +5,8 @@ compiled configurations: one 32x32 scene, `max_radius=WINDOW` and `starts=2` whe
 the test allows, so that most fits reuse the first compilation.
 """
 
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,6 +20,7 @@ from jaxdof import ThinLens, _fit, fit_lens, render, solve_lens
 H = W = 32
 PITCH = 8e-5  # m: large pixels, so that a 50 mm f/2 lens gives circles of a few pixels here
 TRUE = dict(focal_length=0.05, f_number=2.0, focus_distance=1.6)  # K = 5.04 px
+TRAP = pathlib.Path(__file__).parent / "data" / "pyramid_trap.npz"
 WINDOW = 6.0  # px: the truth's largest circle is 3.0 px; headroom for iterates
 STARTS = 2
 
@@ -411,6 +414,37 @@ def test_pyramid_recovers_from_wrong_starts():
     assert res.levels == PYRAMID
     err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
     assert max(err.values()) < 1e-4, err  # the issue's float64 target
+
+
+def test_pyramid_cannot_lead_the_init_astray():
+    """A coarse level whose minimum lies in a wrong basin does not decide the fit.
+
+    `tests/data/pyramid_trap.npz` is one trial of `fits/recover.py`'s cost study (the depth-steps
+    scene at 96 x 96, a texture of 0.7 px grain, sigma = 0.01): at 48 x 48 all four starts converge
+    to N = 17, d_f = 0.42 m, a minimum that does not exist at full resolution (there it moves to
+    N = 14, d_f = 0.48 m with four times the loss of the truth's), while the init itself converges to
+    the truth at full resolution. Before the init was also refined at full resolution, the default
+    call returned that wrong lens with `success=True`.
+    """
+    data = np.load(TRAP, allow_pickle=False)
+    image, target = data["image"].astype(np.float64), data["target"].astype(np.float64)
+    depth = np.broadcast_to(data["depth_row"].astype(np.float64), image.shape)
+    f, pitch = float(data["focal_length"]), float(data["pitch"])
+    (n0, d0), (n_true, d_true) = data["init"], data["truth"]
+    init = ThinLens(f, n0, d0, pitch)
+    kw = dict(free=("f_number", "focus_distance"), max_radius=float(data["window"]))
+    flat = fit_lens(image, depth, target, init, pyramid=1, starts=1, **kw)
+    assert bool(flat.success) and abs(float(flat.lens.f_number) / n_true - 1) < 0.01
+    for starts in (1, 4):
+        res = fit_lens(image, depth, target, init, starts=starts, **kw)
+        assert res.levels == 2, res.levels
+        assert bool(res.success), res.message
+        # The full-resolution minimum, not the coarse level's wrong one (N = 14, d_f = 0.48).
+        np.testing.assert_allclose(float(res.lens.f_number), float(flat.lens.f_number), rtol=1e-6)
+        np.testing.assert_allclose(
+            float(res.lens.focus_distance), float(flat.lens.focus_distance), rtol=1e-6
+        )
+        assert abs(float(res.lens.focus_distance) / d_true - 1) < 0.01
 
 
 def test_pyramid_reproducible_and_warm():
