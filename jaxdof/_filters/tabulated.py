@@ -9,8 +9,8 @@ $$\text{out}[p] = \sum_o \text{image}[p - o]\; T[o, \ell(p - o)], \qquad T[o, l]
 
 The table holds the soft filter's own weights (`soft.tap_weight`), so the result is the soft
 filter's to rounding, depth edges included; only the cost changes, to that of a gather with
-constant weights plus one table read per class (for windows of at most 25 taps, every tap's read
-and product in one fused pass). Used by `method="auto"` on a concrete radius map
+constant weights plus one table read per class (for windows of at most 25 taps the class loop is
+written out rather than scanned). Used by `method="auto"` on a concrete radius map
 (see `auto.py`); radii `<= 1/2` share one level (the identity).
 """
 
@@ -37,9 +37,11 @@ def radius_levels(radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 SELECT_MAX_LEVELS = 16
 
 
-# Up to this many taps (radius <= 2.5: a 5 x 5 window) the gather is written out tap by tap, one fused
-# pass over the pixels: 0.75x the class loop's time at R = 2 (256^2 and 1024^2 RGB float32, CPU);
-# with 37 taps or more the single kernel is slower than the loop.
+# Up to this many taps (radius <= 2.5: a 5 x 5 window) the loop over mirror classes is written out,
+# one weighted source per class read at each of its mirrored offsets, for XLA to schedule as one
+# program: at R = 2 (three levels, RGB float32, CPU) 0.75x the scanned class loop's time, and
+# 0.6-0.7x that of every tap written out with its own look-up (256^2 and 1024^2, one run each);
+# with 37 taps or more the written-out program is slower than the loop.
 FUSED_MAX_TAPS = 25
 
 
@@ -65,7 +67,7 @@ def tabulated_filter(
     offsets = tap_offsets(max_radius)
     idx = jnp.asarray(index, jnp.int32)
     if len(offsets) <= FUSED_MAX_TAPS:
-        return _fused_gather(image, rho, idx, offsets)
+        return _classes_written_out(image, rho, idx, offsets)
 
     def weighted(geom, image, idx):
         row = tap_weight(*geom, rho)  # this offset's weight at each of the L levels
@@ -74,8 +76,9 @@ def tabulated_filter(
     return mirrored_scatter(weighted, offsets, image.shape, image.dtype, (image, idx))
 
 
-def _fused_gather(image, rho, idx, offsets: np.ndarray) -> Array:
-    """The same sum, every tap written out: XLA fuses the look-ups and products into one pass."""
+def _classes_written_out(image, rho, idx, offsets: np.ndarray) -> Array:
+    """The same sum, the class loop written out: each class's weighted source is formed once (one
+    look-up per class, not per tap) and read at each of its mirrored offsets."""
     h, w, _ = image.shape
     pad = half_width(offsets)
     pimg, pidx = pad_rows_cols(image, pad), pad_rows_cols(idx, pad)
@@ -84,7 +87,7 @@ def _fused_gather(image, rho, idx, offsets: np.ndarray) -> Array:
         geometry = _offset_geometry(canonical, image.dtype)
         for n, images in enumerate(mirrors):
             row = tap_weight(*(g[n] for g in geometry), rho)
+            source = pimg * _look_up(row, pidx)[..., None]
             for oy, ox in images:
-                at = (slice(pad - oy, pad - oy + h), slice(pad - ox, pad - ox + w))
-                out = out + pimg[at] * _look_up(row, pidx[at])[..., None]
+                out = out + source[pad - oy : pad - oy + h, pad - ox : pad - ox + w]
     return out
