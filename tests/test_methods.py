@@ -12,7 +12,7 @@ from jaxdof import ThinLens, coc_filter, render
 from jaxdof._filters import tabulated
 from jaxdof._filters.auto import choose_method, max_layers
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
-from jaxdof._filters.common import tap_offsets, window_half_width
+from jaxdof._filters.common import tap_offsets, unique_with_index, window_half_width
 from jaxdof._filters.layered import (
     UNROLL_LEVELS,
     assign_levels,
@@ -531,3 +531,16 @@ def test_float32_in_float32_out(method, float32):
     out = coc_filter(image.astype(np.float32), radius.astype(np.float32), method=method, **knobs)
     assert out.dtype == jnp.float32 and out.shape == image.shape
     assert np.all(np.isfinite(np.asarray(out)))
+
+
+@pytest.mark.parametrize("n_levels", [1, 2, 3, 16, 17, 300])
+def test_unique_with_index_matches_numpy(n_levels):
+    """The level index of auto's inspection equals `np.unique(..., return_inverse=True)`, on both
+    sides of the size where it switches from comparisons to the argsort."""
+    rng = np.random.default_rng(n_levels)
+    values = rng.choice(rng.uniform(0, 5, n_levels).astype(np.float32), size=(37, 53))
+    uniq, index = unique_with_index(values)
+    expected_uniq, inverse = np.unique(values, return_inverse=True)
+    np.testing.assert_array_equal(uniq, expected_uniq)
+    np.testing.assert_array_equal(index, inverse.reshape(values.shape))
+    assert index.dtype == np.int32

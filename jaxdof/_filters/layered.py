@@ -40,7 +40,7 @@ from jax import lax
 from jaxtyping import Array, Float
 
 from .._overlap import circle_pixel_overlap
-from .common import window_half_width
+from .common import unique_with_index, window_half_width
 
 
 def assign_levels(
@@ -76,9 +76,9 @@ def assign_levels(
 def assign_numpy(radius: np.ndarray, layers: int) -> np.ndarray:
     """`assign_levels`' index map for a concrete radius map, in numpy."""
     r = np.where(radius <= 0.5, 0, radius)
-    uniq, inverse = np.unique(r, return_inverse=True)
-    if uniq.size <= layers:
-        return inverse.reshape(r.shape).astype(np.int32)
+    uniq = np.unique(r)
+    if uniq.size <= layers:  # exact levels (the index map only here: binning needs none)
+        return unique_with_index(r)[1]
     sharp = uniq[0] == 0 and layers > 1  # the identity keeps level 0 to itself
     lo, hi = (uniq[1] if sharp else uniq[0]), uniq[-1]
     bins = layers - sharp

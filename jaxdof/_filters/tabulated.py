@@ -20,15 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .common import half_width, pad_rows_cols, tap_offsets
+from .common import half_width, pad_rows_cols, tap_offsets, unique_with_index
 from .soft import _offset_geometry, mirror_classes, mirrored_scatter, tap_weight
 
 
 def radius_levels(radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(levels (L,), index (H, W) int32)` of a concrete radius map, radii `<= 1/2` merged to 0."""
-    r = np.where(radius <= 0.5, 0, radius)
-    levels, index = np.unique(r, return_inverse=True)
-    return levels, index.reshape(r.shape).astype(np.int32)
+    return unique_with_index(np.where(radius <= 0.5, 0, radius))
 
 
 # Up to this many levels each pixel's weight is picked by a chain of selects, which XLA fuses into
