@@ -435,8 +435,8 @@ def test_pyramid_cannot_lead_the_init_astray():
     kw = dict(free=("f_number", "focus_distance"), max_radius=float(data["window"]))
     flat = fit_lens(image, depth, target, init, pyramid=1, starts=1, **kw)
     assert bool(flat.success) and abs(float(flat.lens.f_number) / n_true - 1) < 0.01
-    for starts in (1, 4):
-        res = fit_lens(image, depth, target, init, starts=starts, **kw)
+    for starts, pyramid in ((1, 2), (4, None)):  # from one start the pyramid must be asked for
+        res = fit_lens(image, depth, target, init, starts=starts, pyramid=pyramid, **kw)
         assert res.levels == 2, res.levels
         assert bool(res.success), res.message
         # The full-resolution minimum, not the coarse level's wrong one (N = 14, d_f = 0.48).
@@ -475,6 +475,10 @@ def test_pyramid_levels_chosen_as_documented():
     image, depth = scene()
     res = fit_lens(image, depth, render(image, depth, lens()), lens(), max_radius=WINDOW,
                    starts=STARTS)  # fmt: skip
+    assert res.levels == 1
+    # From one start the automatic choice is full resolution (the init is solved there anyway).
+    image, depth = np.tile(image, (3, 3)), np.tile(depth, (3, 3))  # 96 x 96: two levels otherwise
+    res = fit_lens(image, depth, render(image, depth, lens()), lens(), max_radius=WINDOW, starts=1)
     assert res.levels == 1
 
 
