@@ -1119,8 +1119,8 @@ def fit_lens(
       the result (lens, standard errors, statistics) is the full-resolution fit's, to solver
       tolerance. `None` halves while the shorter side stays at least 24 px and the `init` lens's
       largest circle at least 1 px (twice the half-pixel dead zone, where the render ignores the
-      lens), and stays at full resolution with `starts=1` (the init is solved there anyway). `FitResult.levels` says how many levels ran; `num_steps` counts full-resolution
-      steps only.
+      lens), and stays at full resolution with `starts=1` (the init is solved there anyway).
+      `FitResult.levels` says how many levels ran; `num_steps` counts full-resolution steps only.
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `message`, when the best
     start did not converge, when distinct lenses fit equally well, when the circles outgrow a given

@@ -120,10 +120,15 @@ def unique_with_index(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(sorted distinct values (L,), index map int32 of values' shape)`, as `np.unique` with
     `return_inverse=True`, without its argsort when the values are few."""
     uniq = np.unique(values)
+    return uniq, level_index(values, uniq)
+
+
+def level_index(values: np.ndarray, uniq: np.ndarray) -> np.ndarray:
+    """Position of every entry of `values` in `uniq = np.unique(values)`, int32, `values`' shape."""
     if uniq.size > _COMPARE_MAX_LEVELS:
         inverse = np.unique(values, return_inverse=True)[1]
-        return uniq, inverse.reshape(values.shape).astype(np.int32)
+        return inverse.reshape(values.shape).astype(np.int32)
     index = np.zeros(values.shape, np.int32)
     for v in uniq[:-1]:  # a value's position = how many distinct values lie below it
         index += values > v
-    return uniq, index
+    return index

@@ -40,7 +40,7 @@ from jax import lax
 from jaxtyping import Array, Float
 
 from .._overlap import circle_pixel_overlap
-from .common import unique_with_index, window_half_width
+from .common import level_index, window_half_width
 
 
 def assign_levels(
@@ -78,7 +78,7 @@ def assign_numpy(radius: np.ndarray, layers: int) -> np.ndarray:
     r = np.where(radius <= 0.5, 0, radius)
     uniq = np.unique(r)
     if uniq.size <= layers:  # exact levels (the index map only here: binning needs none)
-        return unique_with_index(r)[1]
+        return level_index(r, uniq)
     sharp = uniq[0] == 0 and layers > 1  # the identity keeps level 0 to itself
     lo, hi = (uniq[1] if sharp else uniq[0]), uniq[-1]
     bins = layers - sharp
