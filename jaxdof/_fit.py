@@ -42,7 +42,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS
 from ._filters.common import is_concrete
 from ._lens import ThinLens
-from ._render import render
+from ._render import _check_downsample, render
 
 
 LENS_FIELDS = ("focal_length", "f_number", "focus_distance")
@@ -124,6 +124,8 @@ class _Model(eqx.Module):
     # The number of live slots (`_Layout.live`); None: differentiate every slot.
     n_live: int | None = eqx.field(static=True, default=None)
     footprint: bool = eqx.field(static=True, default=False)
+    # The image and depth are `downsample` times the targets' resolution (`render`'s).
+    downsample: int = eqx.field(static=True, default=1)
 
     def natural(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, "t 4"]:
         """Lens fields `(f, N, d_f, pitch)` of every target."""
@@ -183,6 +185,7 @@ class _Model(eqx.Module):
                     method=self.method,
                     max_radius=self.max_radius,
                     footprint=self.footprint,
+                    downsample=self.downsample,
                 )
                 + o
             )
@@ -650,8 +653,11 @@ def _check_names(free, shared) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return free, shared
 
 
-def _prepare(image, depth, targets, init, weight, xp=jnp):
+def _prepare(image, depth, targets, init, weight, xp=jnp, downsample: int = 1):
     """Validate and convert inputs: arrays in one float dtype, targets `(T, ...)`, base `(T, 4)`.
+
+    With `downsample = s` the targets (and weights) have the photo's shape, the image's with each
+    spatial axis divided by `s`.
 
     `xp=np` (concrete inputs only) does it all in numpy, without a device call per operation; the
     dtypes are jax's either way (`float64` becomes `float32` without `jax_enable_x64`).
@@ -664,28 +670,32 @@ def _prepare(image, depth, targets, init, weight, xp=jnp):
         raise ValueError(
             f"depth must have the image's (H, W) = {image.shape[:2]}, got {depth.shape}"
         )
+    s = _check_downsample(downsample, image.shape)
+    # The photo's shape: the image's, or with `downsample` its spatial axes divided by `s`.
+    photo = (image.shape[0] // s, image.shape[1] // s, *image.shape[2:])
+    of = "the image's shape" if s == 1 else f"the image's shape divided by downsample={s}"
     single = not isinstance(targets, (list, tuple))
     if single:
         targets = _asarray(xp, targets)
-        if targets.shape == image.shape:
+        if targets.shape == photo:
             targets = targets[None]
             single = True
-        elif targets.shape[1:] == image.shape:
+        elif targets.shape[1:] == photo:
             single = False
         else:
             raise ValueError(
-                f"targets must be one image of the image's shape {image.shape}, a sequence of "
-                f"them, or an array (T, *{image.shape}); got shape {targets.shape}"
+                f"targets must be one image of {of} {photo}, a sequence of them, or an array "
+                f"(T, *{photo}); got shape {targets.shape}"
             )
     else:
         if len(targets) == 0:
             raise ValueError("targets is an empty sequence; pass at least one photo")
         targets = [_asarray(xp, t) for t in targets]
         for i, t in enumerate(targets):
-            if t.shape != image.shape:
+            if t.shape != photo:
                 raise ValueError(
-                    f"targets[{i}] has shape {t.shape}; every target must have the image's "
-                    f"shape {image.shape} (same scene, same framing)"
+                    f"targets[{i}] has shape {t.shape}; every target must have {of} "
+                    f"{photo} (same scene, same framing)"
                 )
         targets = xp.stack(targets)
     for name, x in (("image", image), ("depth", depth), ("targets", targets)):
@@ -730,16 +740,11 @@ def _prepare(image, depth, targets, init, weight, xp=jnp):
         sqrt_w = xp.ones(targets.shape, dtype)
     else:
         weight = _asarray(xp, weight)
-        shape_ok = weight.shape in (
-            image.shape[:2],
-            (n_t, *image.shape[:2]),
-            image.shape,
-            targets.shape,
-        )
+        shape_ok = weight.shape in (photo[:2], (n_t, *photo[:2]), photo, targets.shape)
         if not shape_ok:
             raise ValueError(
-                f"weight must have shape (H, W) = {image.shape[:2]}, (T, H, W), the image's or the "
-                f"targets' shape; got {weight.shape}"
+                f"weight must have the targets' pixels: shape (H, W) = {photo[:2]}, (T, H, W), "
+                f"{photo} or {targets.shape}; got {weight.shape}"
             )
         if is_concrete(weight):
             w = np.asarray(weight)
@@ -748,11 +753,11 @@ def _prepare(image, depth, targets, init, weight, xp=jnp):
             if not np.any(w > 0):
                 raise ValueError("weight is zero everywhere: nothing left to fit")
         colour = targets.ndim == 4
-        if weight.shape == image.shape[:2]:
+        if weight.shape == photo[:2]:
             weight = weight[None, ..., None] if colour else weight[None]
-        elif weight.shape == (n_t, *image.shape[:2]):
+        elif weight.shape == (n_t, *photo[:2]):
             weight = weight[..., None] if colour else weight
-        elif weight.shape == image.shape:
+        elif weight.shape == photo:
             weight = weight[None]
         sqrt_w = xp.broadcast_to(xp.sqrt(weight.astype(dtype)), targets.shape)
     return image.astype(dtype), depth.astype(dtype), targets.astype(dtype), sqrt_w, base, single
@@ -855,8 +860,11 @@ def _box2(x: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
     return x.reshape(shape).mean(axis=(a + 1, a + 3))
 
 
-def _downsample(image, depth, targets, sqrt_w, base):
+def _downsample(image, depth, targets, sqrt_w, base, s: int = 1):
     """One pyramid level down: halved images, depth and weights; the pixel pitch doubled.
+
+    With `downsample = s` (the image `s` times the targets' resolution) the image and depth are
+    first cropped to `s` times the targets' even part, so that the ratio stays `s` exactly.
 
     - `image`, `targets`: 2 x 2 box averages, in linear light (what a sensor with twice the pitch
       records, up to the blur/averaging order, which the finer levels correct).
@@ -869,6 +877,8 @@ def _downsample(image, depth, targets, sqrt_w, base):
       averaged target, and a masked pixel (w = 0), whose target value is arbitrary, masks the
       coarse pixel it falls in instead of leaking into its average.
     """
+    h, w = targets.shape[1] // 2 * 2 * s, targets.shape[2] // 2 * 2 * s
+    image, depth = image[:h, :w], depth[:h, :w]
     inv = _box2(1.0 / depth, (0, 1))  # depth > 0 everywhere (checked), inf -> 0
     with np.errstate(divide="ignore"):
         depth = (1.0 / inv).astype(depth.dtype)
@@ -1021,6 +1031,7 @@ def solve_lens(
     exposure: bool = False,
     method: str = "soft",
     footprint: bool = False,
+    downsample: int = 1,
 ) -> FitResult:
     """The pure core of `fit_lens`: one solve from `init`, with no checks that need values.
 
@@ -1033,11 +1044,15 @@ def solve_lens(
     """
     free, shared = _check_names(free, shared)
     _check_method(method)
-    image, depth, targets, sqrt_w, base, single = _prepare(image, depth, targets, init, weight)
+    image, depth, targets, sqrt_w, base, single = _prepare(
+        image, depth, targets, init, weight, downsample=downsample
+    )
     spec = _Spec(free, shared, targets.shape[0], bool(exposure))
     t = targets.shape[0]
     layout = spec.layout(base, depth)
-    model = _Model(t, float(max_radius), bool(exposure), method, len(spec.used), bool(footprint))
+    model = _Model(
+        t, float(max_radius), bool(exposure), method, len(spec.used), bool(footprint), downsample
+    )
     if solver is None:
         tol = _default_tol(image.dtype)
         solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
@@ -1065,6 +1080,7 @@ def fit_lens(
     method: str = "soft",
     footprint: bool = False,
     pyramid: int | None = None,
+    downsample: int = 1,
 ) -> FitResult:
     r"""Recover lens parameters from defocused photos of a scene with known image and depth.
 
@@ -1108,6 +1124,12 @@ def fit_lens(
     - `footprint`: the forward model's opt-in pixel-footprint correction (`jaxdof.render`'s
       `footprint`): default off. It removes the blur-scale bias of a few percent at circles of
       1-3 px on ray-traced photos (`fits/results/raytraced.md`).
+    - `downsample`: the image and depth are this many times the targets' resolution in each axis
+      (`jaxdof.render`'s `downsample`): targets and weights have the photo's pixels, the window
+      and the circles are in them too. Default 1. An all-in-focus image at 2x the photo's
+      resolution (a pixel-shift capture, or a longer focal length stitched) carries the detail
+      inside each photo pixel that blur of circles of a pixel or two depends on: the fix for the
+      smallest blur scales in `fits/results/raytraced.md`. Each render costs about `s^2` times more.
     - `pyramid`: coarse-to-fine levels (a Python int; `None`: automatic; `0` or `1`: full
       resolution only). Level `l` halves the images `l` times (2 x 2 box averages in linear light;
       depth averaged in inverse depth, weights by their harmonic mean) and doubles the pixel pitch
@@ -1147,9 +1169,11 @@ def fit_lens(
         )
     # Checks and set-up in numpy on the host: two compiled calls per fit (`_fit_starts`, `_finish`)
     # and one transfer of a few small results back, not one device call per array operation.
+    downsample = _check_downsample(downsample, np.shape(image))
     image, depth, targets, sqrt_w, base, single = _prepare(
-        image, depth, targets, init, weight, xp=np
+        image, depth, targets, init, weight, xp=np, downsample=downsample
     )
+    photo = targets.shape[1:3]
     d = np.asarray(depth, np.float64)
     b = np.asarray(base, np.float64)
     for name, x in (("image", image), ("targets", targets)):
@@ -1171,7 +1195,7 @@ def fit_lens(
         raise ValueError(f"starts must be >= 1, got {starts}")
     if verbose is not False and verbose is not True and not callable(verbose):
         raise ValueError(f"verbose must be a bool or a callable, got {verbose!r}")
-    levels = _check_pyramid(pyramid, image.shape[:2])
+    levels = _check_pyramid(pyramid, photo)
 
     dtype = image.dtype
     spec = _Spec(free, shared, n_t, bool(exposure))
@@ -1194,7 +1218,7 @@ def fit_lens(
         raise ValueError(
             f"verbose needs a solver with a `verbose` field, got {type(solver).__name__}"
         )
-    cap = float(max(image.shape[0], image.shape[1]))
+    cap = float(max(photo))
     start_params = _start_params(b, free, int(starts), d, fcap)
     user_window = max_radius is not None
     if user_window:
@@ -1205,7 +1229,9 @@ def fit_lens(
         window = _window(_max_coc(start_params, d), cap)
 
     def model_at(window: float) -> _Model:  # the forward model with a given filter window
-        return _Model(n_t, window, bool(exposure), method, len(spec.used), bool(footprint))
+        return _Model(
+            n_t, window, bool(exposure), method, len(spec.used), bool(footprint), downsample
+        )
 
     # Coarse-to-fine: the multi-start solve runs on the coarsest level, and each finer level
     # starts from the level below's solution (and a near-tie alternative, if any); the last level
@@ -1215,10 +1241,10 @@ def fit_lens(
         # From one start the init is refined at full resolution anyway (below), so coarse levels
         # would only add work: measured 0.5-0.7x the full-resolution fit's speed (fits/recover.py).
         one = len(start_params) == 1
-        levels = 1 if one else _auto_levels(image.shape[:2], _max_coc(start_params[:1], d))
+        levels = 1 if one else _auto_levels(photo, _max_coc(start_params[:1], d))
     pyr = [(image, depth, targets, sqrt_w, b)]
     for _ in range(levels - 1):
-        pyr.append(_downsample(*pyr[-1]))
+        pyr.append(_downsample(*pyr[-1], downsample))
     # Shapes and values stay numpy; the layout keeps the full-resolution bound on f at every
     # level, so that a parameter vector means the same lens on every level.
     layouts = [layout] + [dataclasses.replace(layout, base=lv[4].astype(dtype)) for lv in pyr[1:]]
@@ -1234,7 +1260,7 @@ def fit_lens(
         else:
             rows_l = np.asarray(rows, np.float64).copy()
             rows_l[..., 3] = rows_l[..., 3] * scale
-            win_l = _window(_max_coc(rows_l, d_l), float(max(dep_l.shape)))
+            win_l = _window(_max_coc(rows_l, d_l), float(max(tg_l.shape[1:3])))
         model_l = model_at(win_l)
         solver_l = _with_verbose(coarse_solver, verbose, model_l, layouts[lev], f"level {lev} ")
         args_l = (im_l, dep_l, tg_l, sw_l, layouts[lev])

@@ -1,8 +1,10 @@
-"""`render`: image + depth + lens -> circle of confusion -> filter."""
+"""`render`: image + depth + lens -> circle of confusion -> filter (-> the photo's pixels)."""
 
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array
 
 from ._corrections import footprint_prefilter
 from ._custom_types import DepthLike, Image, ImageLike
@@ -26,6 +28,7 @@ def render(
     layers: int | None = None,
     fill: bool | None = None,
     footprint: bool = False,
+    downsample: int = 1,
 ) -> Image:
     """Render the depth of field of `lens` from an all-in-focus image and its depth map.
 
@@ -44,10 +47,19 @@ def render(
       lens's variance `r^2 / 4`, also for circles under half a pixel, where the plain filter copies
       the pixel (see `jaxdof.footprint_prefilter`; measured against ray tracing in
       `fits/results/raytraced.md`).
-    - `max_radius`: window size in pixels. `None` (the default) uses the smallest window that covers
-      the largest circle in the scene, which needs concrete inputs; under `jit` pass a number.
+    - `downsample`: the image and depth map are `s = downsample` times the photo's resolution in
+      each axis (a pixel-shift or higher-resolution capture of the all-in-focus scene; the lens's
+      `pixel_pitch` stays the photo's). The scatter runs at that resolution, with circles of
+      `s r` input pixels, and its `s x s` blocks are averaged into the photo's pixels: what a
+      sensor with `s` times the pitch records. Default 1 (same resolution). Why: a pixel of the
+      all-in-focus image is already an average over its area, and a photo's blur of circles of a
+      pixel or two depends on detail inside that area, which no filter of the averages can know;
+      against ray tracing (`fits/results/raytraced.md`) a 2x input recovers most of it.
+    - `max_radius`: window size in the photo's pixels (the lens's `pixel_pitch`). `None` (the
+      default) uses the smallest window that covers the largest circle in the scene, which needs
+      concrete inputs; under `jit` pass a number.
 
-    **Returns:** the defocused image, same shape as `image`.
+    **Returns:** the defocused image, `image`'s shape (each spatial axis divided by `downsample`).
 
     **Invalid inputs** (NaN or negative depth, depth not beyond the focal length, a lens with a
     non-positive field or `focus_distance <= focal_length`): concrete values raise `ValueError`
@@ -62,6 +74,7 @@ def render(
     """
     depth = jnp.asarray(depth)
     image = jnp.asarray(image)
+    s = _check_downsample(downsample, image.shape)
     if depth.shape != image.shape[:2]:
         raise ValueError(
             f"depth must have the image's (H, W) = {image.shape[:2]}, got {depth.shape}"
@@ -71,11 +84,14 @@ def render(
     _check_depth(depth, lens)  # concrete: ValueError now
     depth = _error_if_invalid(depth, lens)  # traced: error at run time (equinox.error_if)
     radius = coc_radius(depth, lens).astype(jnp.result_type(image.dtype, depth.dtype))
+    if s > 1:  # circles and window in the input's pixels, s times smaller than the photo's
+        radius = radius * s
+        max_radius = None if max_radius is None else max_radius * s
     knobs = dict(samples=samples, key=key, pattern=pattern, blades=blades, rotation=rotation)
     if footprint:  # corrected for the radius the filter spreads (clamped to the window)
         r = radius if max_radius is None else jnp.minimum(radius, max_radius)
         image = footprint_prefilter(image, r)
-    return coc_filter(
+    out = coc_filter(
         image,
         radius,
         method=method,
@@ -86,3 +102,29 @@ def render(
         fill=fill,
         **knobs,
     )
+    return box_downsample(out, s)
+
+
+def _check_downsample(downsample, shape: tuple[int, ...]) -> int:
+    """`downsample` as an int, checked against the input's `(H, W, ...)` shape."""
+    if isinstance(downsample, bool) or not isinstance(downsample, (int, np.integer)):
+        raise ValueError(f"downsample must be a Python int >= 1, got {downsample!r}")
+    s = int(downsample)
+    if s < 1:
+        raise ValueError(f"downsample must be >= 1, got {s}")
+    h, w = shape[:2]
+    if h % s or w % s:
+        raise ValueError(
+            f"downsample={s} needs an image whose height and width are multiples of {s}, got "
+            f"{h} x {w}; crop it to {h - h % s} x {w - w % s}"
+        )
+    return s
+
+
+def box_downsample(x: Array, s: int) -> Array:
+    """Means of the `s x s` blocks of `x` `(s h, s w, ...)` -> `(h, w, ...)`: a sensor with `s`
+    times the pitch (linear light). `s = 1` returns `x`."""
+    if s == 1:
+        return x
+    h, w = x.shape[0] // s, x.shape[1] // s
+    return x.reshape(h, s, w, s, *x.shape[2:]).mean(axis=(1, 3))
