@@ -187,6 +187,28 @@ def _add_footprint_option(g) -> None:
         action="store_true",
         help="correct for the pixel footprint (blur variance r^2/4 at every radius; off by default)",
     )
+    g.add_argument(
+        "--downsample",
+        type=int,
+        default=1,
+        metavar="S",
+        help="IMAGE and DEPTH are S times the photo's resolution in each axis (e.g. a pixel-shift "
+        "capture): blur there, then average S x S blocks into the photo's pixels (default 1)",
+    )
+
+
+def _photo_width(args, image_shape) -> int:
+    """The photo's width in pixels (the lens's pixel pitch is the photo's): IMAGE's / --downsample."""
+    s = args.downsample
+    if s < 1:
+        raise InputError(f"--downsample {s}: must be a positive integer")
+    h, w = image_shape[:2]
+    if h % s or w % s:
+        raise InputError(
+            f"--downsample {s}: IMAGE is {h}x{w}, not a multiple of {s} in each axis; crop it to "
+            f"{h - h % s}x{w - w % s}"
+        )
+    return w // s
 
 
 _EPILOG_RENDER = """\
@@ -414,7 +436,7 @@ def run_render(args) -> int:
         args.f_number,
         args.focus,
         sensor_width=args.sensor_width,
-        image_width=img.array.shape[1],
+        image_width=_photo_width(args, img.array.shape),
     )
     t0 = time.perf_counter()
     try:
@@ -426,13 +448,14 @@ def run_render(args) -> int:
             max_radius=args.max_radius,
             normalize=args.normalize,
             footprint=args.footprint,
+            downsample=args.downsample,
         )
     except ValueError as err:  # the library's own input checks (house style: ValueError)
         raise InputError(" ".join(str(err).split())) from None
     out = np.asarray(out)
     radius = float(np.max(np.asarray(jaxdof.coc_radius(depth, lens))))
     write_image(args.out, out, bits=img.bits, linear=args.linear, inputs=inputs)
-    h, w = img.array.shape[:2]
+    h, w = out.shape[:2]
     print(
         f"wrote {args.out} ({h}x{w}, blur scale K = {float(lens.blur_scale):.3g} px, largest circle "
         f"{radius:.3g} px, {time.perf_counter() - t0:.1f} s)"
@@ -501,15 +524,19 @@ def _format_value(name: str, v: float, err: float | None) -> str:
 def run_fit(args) -> int:
     inputs = [args.image, args.depth, *args.targets]
     img, depth = _read_inputs(args)
+    photo_width = _photo_width(args, img.array.shape)
+    s = args.downsample
+    photo = (img.array.shape[0] // s, photo_width, *img.array.shape[2:])
     targets = []
     for path in args.targets:
         t = read_image(path, linear=args.linear, option="TARGET")
         for n in t.notes:
             _note(n)
-        if t.array.shape != img.array.shape:
+        if t.array.shape != photo:
+            of = "" if s == 1 else f" / --downsample {s} = {photo}"
             raise InputError(
                 f"{path}: target has shape {t.array.shape} but image {args.image} has "
-                f"{img.array.shape}; targets must match the image (height, width, channels)"
+                f"{img.array.shape}{of}; targets must match the image (height, width, channels)"
             )
         targets.append(t.array)
     bad = set(args.shared) - set(args.free)
@@ -537,7 +564,7 @@ def run_fit(args) -> int:
         args.f_number,
         focus,
         sensor_width=args.sensor_width,
-        image_width=img.array.shape[1],
+        image_width=photo_width,
     )
     target_arg = targets[0] if len(targets) == 1 else np.stack(targets)
     try:
@@ -551,6 +578,7 @@ def run_fit(args) -> int:
             max_steps=args.max_steps,
             max_radius=args.max_radius,
             footprint=args.footprint,
+            downsample=s,
             verbose=_progress(args.quiet),
         )
     except ValueError as err:  # e.g. a free set one photo cannot determine
@@ -580,7 +608,9 @@ def run_fit(args) -> int:
             f"{verdict} after {summary['steps']} steps, loss {summary['loss']:.4g}: {summary['message']}"
         )
     if args.plot:
-        _plot_fit(args.plot, img.array, depth, targets, result, args.targets, inputs)
+        _plot_fit(
+            args.plot, img.array, depth, targets, result, args.targets, inputs, s, args.footprint
+        )
         _note(f"wrote {args.plot}")
     return 0 if summary["success"] else 1
 
@@ -591,14 +621,22 @@ def _lens_at(lens, index: int):
     return jax.tree_util.tree_map(lambda v: v if np.ndim(v) == 0 else v.reshape(-1)[index], lens)
 
 
-def _plot_fit(path, image, depth, targets, result, names, inputs) -> None:
+def _plot_fit(path, image, depth, targets, result, names, inputs, s=1, footprint=False) -> None:
     import jaxdof
 
+    from ._render import box_downsample
+
+    full_image, full_depth = image, depth  # the fit's inputs; shown at the photo's pixels
+    if s > 1:
+        image = np.asarray(box_downsample(np.asarray(image), s))
+        depth = 1 / np.asarray(box_downsample(1 / np.asarray(depth), s))
     n = len(targets)
     columns = []
     for i, target in enumerate(targets):
         lens = _lens_at(result.lenses, i)
-        refit = np.asarray(jaxdof.render(image, depth, lens))
+        refit = np.asarray(
+            jaxdof.render(full_image, full_depth, lens, downsample=s, footprint=footprint)
+        )
         radius = np.asarray(jaxdof.coc_radius(depth, lens))
         name = os.path.basename(names[i])
         columns += [

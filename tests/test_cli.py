@@ -127,6 +127,23 @@ def test_render_footprint_option(files):
     (d / "out.npy").unlink()
 
 
+def test_render_downsample_option(files):
+    """`--downsample 2`: IMAGE and DEPTH at twice the photo's resolution; the output (and the lens's
+    pixel pitch, from --sensor-width) is the photo's."""
+    d, hashes, linear, depth = files
+    import jaxdof
+
+    res = _run(["render", "sharp.png", "depth.npy", "-o", "out.npy", "--downsample", "2", *LENS], d)
+    assert res.returncode == 0, res.stderr
+    out = np.load(d / "out.npy")
+    assert out.shape == (H // 2, W // 2, 3)
+    lens = jaxdof.ThinLens.from_sensor(0.085, 1.4, 3.0, sensor_width=0.012, image_width=W // 2)
+    expect = np.asarray(jaxdof.render(linear, depth, lens, downsample=2))
+    assert np.max(np.abs(out - expect)) < 1e-5  # float32 there, float64 here
+    _unchanged(d, hashes)
+    (d / "out.npy").unlink()
+
+
 def test_render_float_tiff_and_millimetre_png(files):
     d, hashes, linear, depth = files
     import jaxdof
@@ -164,6 +181,27 @@ def test_fit_json_and_plot(files):
     assert iio.imread(d / "fit.png").ndim == 3
     _unchanged(d, hashes)
     (d / "fit.png").unlink()
+
+
+def test_fit_downsample_option(tmp_path):
+    """`fit --downsample 2`: a 48 x 64 all-in-focus input for a 24 x 32 photo (noise-free, rendered
+    by the library with the same float32 model); the lens comes back to solver precision."""
+    import jaxdof
+
+    image, depth = demo_scene(2 * H, 2 * W)
+    np.save(tmp_path / "sharp.npy", image)
+    np.save(tmp_path / "depth.npy", depth)
+    lens = jaxdof.ThinLens.from_sensor(0.085, 1.4, 3.0, sensor_width=0.012, image_width=W)
+    np.save(tmp_path / "photo.npy", np.asarray(jaxdof.render(image, depth, lens, downsample=2)))
+    start = ["--focal-length", "85mm", "--f-number", "2", "--focus", "3.6m", "--sensor-width"]
+    argv = ["fit", "sharp.npy", "depth.npy", "photo.npy", *start, SENSOR, "--downsample", "2"]
+    res = _run([*argv, "--json", "--quiet"], tmp_path)
+    assert res.returncode == 0, res.stderr
+    obj = json.loads(res.stdout)
+    assert obj["success"] is True
+    assert obj["pixel_pitch"] == pytest.approx(0.012 / W)  # the photo's pitch
+    for name, value in TRUTH.items():
+        assert obj[name] == pytest.approx(value, rel=1e-3), name
 
 
 def test_fit_several_targets_output(files, monkeypatch, capsys):
@@ -279,6 +317,9 @@ BAD = [  # (argv, text the one line must contain)
     ([*R, *LENS[:4]], "the following arguments are required: --focus"),
     ([*R, *LENS, "--method", "magic"], "argument --method: invalid choice"),
     ([*R, *LENS, "--max-radius", "-1"], "argument --max-radius"),
+    ([*R, *LENS, "--downsample", "0"], "--downsample 0: must be a positive integer"),
+    ([*R, *LENS, "--downsample", "5"], "--downsample 5: IMAGE is 24x32, not a multiple of 5"),
+    ([*F, "--downsample", "2"], "target.npy: target has shape (24, 32, 3) but image sharp.png"),
     ([*F[:3], "small3.npy", *F[4:]], "small3.npy: target has shape (24, 31, 3)"),
     ([*F[:3], "missing.npy", *F[4:]], "missing.npy: no such file"),
     ([*F, "--free", "focal_length", "f_number"], "--free focal_length f_number: one photo"),
