@@ -1208,7 +1208,7 @@ def main(fixtures=False):
             for sc in SCENES
             if n_all(tr, sc)
         )
-        + ". The edge treatment is still needed where there are occlusion edges.",
+        + ". Occlusion edges still need a treatment (the edge weight or the occlusion-aware model).",
         "",
     ]
     L[intro_end:intro_end] = head
