@@ -622,14 +622,16 @@ def _lens_at(lens, index: int):
 
 
 def _plot_fit(path, image, depth, targets, result, names, inputs, s=1, footprint=False) -> None:
+    import jax.numpy as jnp
+
     import jaxdof
 
     from ._render import box_downsample
 
     full_image, full_depth = image, depth  # the fit's inputs; shown at the photo's pixels
     if s > 1:
-        image = np.asarray(box_downsample(np.asarray(image), s))
-        depth = 1 / np.asarray(box_downsample(1 / np.asarray(depth), s))
+        image = np.asarray(box_downsample(jnp.asarray(image), s))
+        depth = 1 / np.asarray(box_downsample(1 / jnp.asarray(depth), s))
     n = len(targets)
     columns = []
     for i, target in enumerate(targets):

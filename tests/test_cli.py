@@ -195,13 +195,14 @@ def test_fit_downsample_option(tmp_path):
     np.save(tmp_path / "photo.npy", np.asarray(jaxdof.render(image, depth, lens, downsample=2)))
     start = ["--focal-length", "85mm", "--f-number", "2", "--focus", "3.6m", "--sensor-width"]
     argv = ["fit", "sharp.npy", "depth.npy", "photo.npy", *start, SENSOR, "--downsample", "2"]
-    res = _run([*argv, "--json", "--quiet"], tmp_path)
+    res = _run([*argv, "--json", "--quiet", "--plot", "fit.png"], tmp_path)
     assert res.returncode == 0, res.stderr
     obj = json.loads(res.stdout)
     assert obj["success"] is True
     assert obj["pixel_pitch"] == pytest.approx(0.012 / W)  # the photo's pitch
     for name, value in TRUTH.items():
         assert obj[name] == pytest.approx(value, rel=1e-3), name
+    assert iio.imread(tmp_path / "fit.png").ndim == 3  # the figure at the photo's pixels
 
 
 def test_fit_several_targets_output(files, monkeypatch, capsys):
