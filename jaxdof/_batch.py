@@ -76,6 +76,8 @@ def render_batch(
     method: str = "soft",
     max_radius: float | None = None,
     normalize: bool = False,
+    footprint: bool = False,
+    downsample: int = 1,
     mesh: Mesh | None = None,
 ):
     """Render a batch of scenes, sharded over the devices of `mesh` along the batch axis.
@@ -86,8 +88,9 @@ def render_batch(
     - `depths`: `(B, H, W)` z-depths (m).
     - `lens`: one `ThinLens` for every scene (scalar fields), or one per scene (fields of shape
       `(B,)`).
-    - `method`, `normalize`: as in `jaxdof.render`.
-    - `max_radius`: window size in pixels, shared by the batch. `None` takes the largest circle of
+    - `method`, `normalize`, `footprint`, `downsample`: as in `jaxdof.render` (with `downsample`
+      the output is `(B, H / s, W / s, ...)`).
+    - `max_radius`: window size in (the photo's) pixels, shared by the batch. `None` takes the largest circle of
       confusion over the batch (needs concrete inputs).
     - `mesh`: a 1-D mesh from `batch_mesh` (default: all devices).
 
@@ -128,7 +131,14 @@ def render_batch(
 
     def one(image, depth, lens_i):
         return render(
-            image, depth, lens_i, method=method, max_radius=max_radius, normalize=normalize
+            image,
+            depth,
+            lens_i,
+            method=method,
+            max_radius=max_radius,
+            normalize=normalize,
+            footprint=footprint,
+            downsample=downsample,
         )
 
     out_sharding = NamedSharding(mesh, PartitionSpec(BATCH_AXIS))

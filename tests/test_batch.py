@@ -54,6 +54,13 @@ SCRIPT = textwrap.dedent(
     np.testing.assert_allclose(
         np.asarray(out), single_device(images[:6], depths[:6], shared, None), rtol=0, atol=1e-13
     )
+    # the opt-in footprint correction and a 2x input (8 x 8 -> 4 x 4), passed through
+    kw = dict(max_radius=R, footprint=True, downsample=2)
+    out = jaxdof.render_batch(images[:, :8, :8], depths[:, :8, :8], lenses, **kw)
+    f = jax.vmap(lambda i, d, l: jaxdof.render(i, d, l, **kw))
+    want = jax.jit(f)(*(jax.device_put(t, cpu0) for t in (images[:, :8, :8], depths[:, :8, :8], lenses)))
+    assert out.shape == (8, 4, 4, 3)
+    np.testing.assert_allclose(np.asarray(out), np.asarray(want), rtol=0, atol=1e-13)
     print("OK")
     """
 )
