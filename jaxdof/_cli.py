@@ -199,16 +199,13 @@ def _add_footprint_option(g) -> None:
 
 def _photo_width(args, image_shape) -> int:
     """The photo's width in pixels (the lens's pixel pitch is the photo's): IMAGE's / --downsample."""
-    s = args.downsample
-    if s < 1:
-        raise InputError(f"--downsample {s}: must be a positive integer")
-    h, w = image_shape[:2]
-    if h % s or w % s:
-        raise InputError(
-            f"--downsample {s}: IMAGE is {h}x{w}, not a multiple of {s} in each axis; crop it to "
-            f"{h - h % s}x{w - w % s}"
-        )
-    return w // s
+    from ._render import _check_downsample
+
+    try:
+        s = _check_downsample(args.downsample, image_shape)
+    except ValueError as err:
+        raise InputError(f"--downsample {args.downsample}: {err} (IMAGE)") from None
+    return image_shape[1] // s
 
 
 _EPILOG_RENDER = """\

@@ -166,22 +166,31 @@ def test_lens_matches_mitsuba_blur_discs():
 # ------------------------------------------------------------------------- recovering the lens
 
 
-def fit_fixture(name, *, edges):
-    f = load(name)
-    a, d_f = float(f["aperture_radius"]), float(f["focus_distance"])
+def fixture_start(f):
+    """`(truth, init, interior weight, r0)` of a fixture: the study's start (N 30% off, d_f 15%
+    far) and its largest circle `r0`. Pixels within 1.6 r0 of the crop's border see scene content
+    that is not in the crop: masked out, as fits/raytraced.py does for the full frame."""
     truth = lens_from_raytracer(
-        a, d_f, fov_x_deg=float(f["fov_x_deg"]), image_width=int(f["width"])
+        float(f["aperture_radius"]),
+        float(f["focus_distance"]),
+        fov_x_deg=float(f["fov_x_deg"]),
+        image_width=int(f["width"]),
     )
     init = jaxdof.ThinLens(
         truth.focal_length, truth.f_number * 1.3, truth.focus_distance * 1.15, truth.pixel_pitch
     )
     depth = f["depth"].astype(np.float64)
-    # Pixels within 1.6x the start's largest circle of the crop's border see scene content that
-    # is not in the crop: mask them out, as fits/raytraced.py does for the full frame.
     r0 = float(np.max(np.asarray(jaxdof.coc_radius(depth, init))))
     b = int(math.ceil(1.6 * r0)) + 2
     weight = np.zeros(depth.shape)
     weight[b:-b, b:-b] = 1.0
+    return truth, init, weight, r0
+
+
+def fit_fixture(name, *, edges):
+    f = load(name)
+    truth, init, weight, r0 = fixture_start(f)
+    depth = f["depth"].astype(np.float64)
     if edges:
         weight = weight * edge_weight(depth, width=r0 + 1.0)
     res = jaxdof.fit_lens(
@@ -218,20 +227,8 @@ def test_a_finer_input_recovers_the_smallest_blur_scale():
     # all-in-focus input at twice the photo's resolution (`downsample=2`) meets the goal (measured
     # d_f -0.4%, K +1.0%). Both from the study's start (N 30% off, d_f 15% far), one start.
     f = load("slant_fine")
-    truth = lens_from_raytracer(
-        float(f["aperture_radius"]),
-        float(f["focus_distance"]),
-        fov_x_deg=float(f["fov_x_deg"]),
-        image_width=int(f["width"]),
-    )
-    init = jaxdof.ThinLens(
-        truth.focal_length, truth.f_number * 1.3, truth.focus_distance * 1.15, truth.pixel_pitch
-    )
+    truth, init, weight, _ = fixture_start(f)
     depth = f["depth"].astype(np.float64)
-    r0 = float(np.max(np.asarray(jaxdof.coc_radius(depth, init))))
-    b = int(math.ceil(1.6 * r0)) + 2
-    weight = np.zeros(depth.shape)
-    weight[b:-b, b:-b] = 1.0
     target = f["target"].astype(np.float64)
     fits = {}
     for s, image, z in ((1, f["image"], depth), (2, f["image_x2"], f["depth_x2"])):
