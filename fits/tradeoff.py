@@ -145,7 +145,9 @@ def fit_error(method, knobs, image, depth, lens, target, radius, steps=40):
     return abs(math.exp(float(sol.value[0])) / truth - 1)
 
 
-def run(quick: bool, size: int | None = None, tag: str = "", auto_size: int = 256) -> None:
+def run(
+    quick: bool, size: int | None = None, tag: str = "", auto_sizes: tuple[int, ...] = (256,)
+) -> None:
     size = size or (32 if quick else 48)
     radii = (2.0, 8.0) if quick else (2.0, 8.0, 24.0)
     repeat = 3 if quick else 5
@@ -226,7 +228,7 @@ def run(quick: bool, size: int | None = None, tag: str = "", auto_size: int = 25
                     f"[{time.perf_counter() - t_start:.0f}s]",
                     flush=True,
                 )
-        for sz in dict.fromkeys((size, auto_size)):
+        for sz in dict.fromkeys((size, *auto_sizes)):
             auto_rows += auto_vs_soft(R, scenes, sz, repeat)
     write(rows, auto_rows, quick, size, radii, repeat, time.perf_counter() - t_start, tag)
 
@@ -511,9 +513,13 @@ if __name__ == "__main__":
     )
     parser.add_argument("--size", type=int, default=None, help="image side (default 48, quick 32)")
     parser.add_argument(
-        "--auto-size", type=int, default=256, help="the larger frame of the auto-vs-soft timing"
+        "--auto-size",
+        type=int,
+        nargs="+",
+        default=[256],
+        help="the larger frame(s) of the auto-vs-soft timing (default 256)",
     )
     parser.add_argument("--tag", default="", help="suffix of the output names, e.g. _gpu")
     args = parser.parse_args()
-    run(args.quick, args.size, args.tag, args.auto_size)
+    run(args.quick, args.size, args.tag, tuple(args.auto_size))
     sys.exit(0)
