@@ -324,7 +324,7 @@ def test_window_too_small_is_reported():
         (dict(free=("f_number",), shared=("focus_distance",)), "subset of free"),
         (dict(free=("aperture",)), "free must name fields"),
         (dict(starts=0), "starts must be"),
-        (dict(weight=np.ones((3, 3))), "weight must have shape"),
+        (dict(weight=np.ones((3, 3))), "weight must have the targets' pixels"),
         (dict(method="hard"), "cannot drive a fit"),
     ],
 )
