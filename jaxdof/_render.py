@@ -112,7 +112,7 @@ def _check_downsample(downsample, shape: tuple[int, ...]) -> int:
     s = int(downsample)
     if s < 1:
         raise ValueError(f"downsample must be >= 1, got {s}")
-    h, w = shape[:2]
+    h, w = (tuple(shape) + (0, 0))[:2]  # fewer than 2 axes: refused by the callers' own checks
     if h % s or w % s:
         raise ValueError(
             f"downsample={s} needs an image whose height and width are multiples of {s}, got "

@@ -153,6 +153,15 @@ def test_render_rejects_bad_downsample(downsample, match):
         jaxdof.render(image, depth, LENS, downsample=downsample)
 
 
+@pytest.mark.parametrize("s", [1, 2])
+def test_a_one_axis_image_is_named_not_unpacked(s):
+    # (under the test suite's jaxtyping hook render's signature refuses it first: a TypeError)
+    with pytest.raises((ValueError, TypeError), match="image"):
+        jaxdof.render(np.ones(6), np.ones(6), LENS, downsample=s)
+    with pytest.raises(ValueError, match=r"image must have shape \(H, W\) or \(H, W, C\)"):
+        jaxdof.fit_lens(np.ones(6), np.ones(6), np.ones(6 // s), LENS, downsample=s)
+
+
 def test_fit_lens_names_the_photo_shape():
     image, depth = scene(16, 20)
     target = np.asarray(jaxdof.render(image, depth, LENS, downsample=2))
