@@ -1244,15 +1244,14 @@ def fine_input_section():
     for name in SCENES:
         pin, dist, thin, _ = load_scene(name)
         z = z_depth(dist)
-        fine = {s: load_scene_fine(name, s) for s in (2, 4)}
+        inputs = {1: (pin, z), **{s: load_scene_fine(name, s) for s in (2, 4)}}
         for (a, d), tgt in thin.items():
             lens = true_lens(a, d)
             r = np.asarray(jaxdof.coc_radius(z, lens))
             m = interior(z.shape, int(np.ceil(r.max())) + 2)[..., None].repeat(3, -1)
             mr = float(np.ceil(r.max()) + 1)
             row = {}
-            for s in (1, 2, 4):
-                im, zz = (pin, z) if s == 1 else fine[s]
+            for s, (im, zz) in inputs.items():
                 for fp in (False, True):
                     out_s = jaxdof.render(im, zz, lens, max_radius=mr, downsample=s, footprint=fp)
                     row[(s, fp)] = psnr(np.asarray(out_s), tgt, m)
@@ -1260,7 +1259,7 @@ def fine_input_section():
                 if name == "slant":  # one layer: the soft render
                     row[("occ", s)] = row[(s, True)]
                     continue
-                im, zz = (pin, z) if s == 1 else fine[s]
+                im, zz = inputs[s]
                 out_s = jaxdof.render(
                     im, zz, lens, max_radius=mr, downsample=s, footprint=True, method="occlusion"
                 )

@@ -1169,10 +1169,10 @@ def fit_lens(
         )
     # Checks and set-up in numpy on the host: two compiled calls per fit (`_fit_starts`, `_finish`)
     # and one transfer of a few small results back, not one device call per array operation.
-    downsample = _check_downsample(downsample, np.shape(image))
     image, depth, targets, sqrt_w, base, single = _prepare(
         image, depth, targets, init, weight, xp=np, downsample=downsample
     )
+    downsample = int(downsample)  # checked by `_prepare` against the image's shape
     photo = targets.shape[1:3]
     d = np.asarray(depth, np.float64)
     b = np.asarray(base, np.float64)
