@@ -146,6 +146,35 @@ def test_jitter_converges_to_soft_and_is_unbiased():
     assert _err(mean8, soft) < 0.6 * np.mean([_err(one(16, k), soft) for k in keys[:4]])
 
 
+@pytest.mark.parametrize("samples", [1, 5, 16])
+def test_jitter_equals_its_definition(samples):
+    # the binary search over sorted thresholds against the paper's direct test of every point
+    from jaxdof._filters.jitter import PATTERNS, jitter_points
+
+    image, radius = _scene(9, 11, 3.0, seed=3)
+    radius[2, 3], radius[4, 4] = 0.5, 0.0  # the identity branch
+    out = np.asarray(coc_filter(image, radius, method="jitter", samples=samples, key=KEY))
+    k_points, k_choice = jax.random.split(KEY)
+    pts = np.asarray(jitter_points(k_points, PATTERNS, samples, jnp.float64))
+    choice = np.asarray(jax.random.randint(k_choice, radius.shape, 0, PATTERNS, jnp.int32))
+    h, w = radius.shape
+    ref = np.zeros_like(image)
+    for y, x in np.ndindex(h, w):  # output pixel p = (y, x) gathers from every source q
+        s = pts[choice[y, x]]  # its points, (dy, dx) from its centre
+        for qy, qx in np.ndindex(h, w):
+            r = radius[qy, qx]
+            if r <= 0.5:
+                wgt = float((qy, qx) == (y, x))
+            else:
+                d2 = (y + s[:, 0] - qy) ** 2 + (x + s[:, 1] - qx) ** 2
+                wgt = np.sum(d2 <= r * r) / (math.pi * r * r * samples)
+            ref[y, x] += wgt * image[qy, qx]
+    np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-14)
+    # a traced key builds the same thresholds at run time (a concrete one at compile time)
+    traced = jax.jit(lambda k: coc_filter(image, radius, method="jitter", samples=samples, key=k))
+    np.testing.assert_array_equal(traced(KEY), out)
+
+
 # --- energy --------------------------------------------------------------------------------------
 
 

@@ -195,8 +195,8 @@ def coc_filter(
         - `"supersample"`: coverage counted on `samples x samples` sub-pixel points (default 4),
           normalised by the total count (energy exact). No gradient in `radius`.
         - `"jitter"`: coverage estimated from `samples` stratified random points per output pixel
-          (default 16), drawn from `key`; an unbiased estimate of `"soft"` (energy exact in
-          expectation). No gradient in `radius`.
+          (default 16; 16 point sets drawn from `key`, one picked at random per pixel); an
+          unbiased estimate of `"soft"` (energy exact in expectation). No gradient in `radius`.
         - `"aperture"`: the accumulation buffer: mean of `samples` (default 64) bilinear
           forward splats at `q + u_k r_q` for lens samples `u_k` from `pattern` (`"ring"`,
           `"stratified"` (default), `"jittered"`, `"disc"`, `"weighted_disc"`; the random ones need

@@ -14,6 +14,14 @@ filter's weight**, which is its `n -> infinity` limit (error `O(n^-1/2)` for ind
 for the stratified ones). Energy is conserved in expectation, not exactly. Radii `<= 1/2` leave
 their pixel untouched, as in the soft filter.
 
+**A precomputed set of patterns.** The paper found generating random numbers per pixel costly
+"unless using a precomputed set of numbers"; so `key` draws `PATTERNS` (16) Latin hypercubes once,
+and every output pixel uses one of them, picked at random (also from `key`, so no period shows).
+For a tap at offset `o` and pattern `j` the squared distances `|o + s_{j,k}|^2` are then known
+before the image is seen; sorted, the hit count of a source of radius `r` is their number below
+`r^2`, a binary search of `log2(n) + 1` look-ups instead of `n` distance tests. Same estimate, same
+expectation.
+
 The same `key` always gives the same points and the same image (`normalize=True` reuses them for the
 flat field).
 
@@ -23,29 +31,55 @@ held constant (`stop_gradient`): `DIFFERENTIABLE_IN_RADIUS["jitter"]` is `False`
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
-from .common import tap_offsets
+from .common import is_concrete, tap_offsets
 from .taps import gather_taps
 
 
-def jitter_points(key: Array, shape: tuple[int, int], samples: int, dtype) -> Array:
-    """Latin-hypercube points `(H, W, n, 2)` as `(dy, dx)` in `[-1/2, 1/2)^2`, one set per pixel."""
+#: Latin hypercubes drawn per key; each output pixel uses one, picked at random.
+PATTERNS = 16
+
+
+def jitter_points(key: Array, count: int, samples: int, dtype) -> Float[Array, "count n 2"]:
+    """`count` Latin hypercubes of `samples` points `(dy, dx)` in `[-1/2, 1/2)^2`."""
     ky, kx, kp = jax.random.split(key, 3)
-    h, w = shape
-    strata = jnp.arange(samples, dtype=dtype)[None, None]
-    uy = jax.random.uniform(ky, (h, w, samples), dtype)
-    ux = jax.random.uniform(kx, (h, w, samples), dtype)
-    perm = jnp.argsort(jax.random.uniform(kp, (h, w, samples), dtype), axis=-1)
+    strata = jnp.arange(samples, dtype=dtype)[None]
+    uy = jax.random.uniform(ky, (count, samples), dtype)
+    ux = jax.random.uniform(kx, (count, samples), dtype)
+    perm = jnp.argsort(jax.random.uniform(kp, (count, samples), dtype), axis=-1)
     dy = (strata + uy) / samples - 0.5
     dx = (perm.astype(dtype) + ux) / samples - 0.5
     return jnp.stack([dy, dx], axis=-1)
+
+
+def hit_thresholds(points: Float[Array, "p n 2"], offsets: np.ndarray) -> Float[Array, "taps pm"]:
+    """Per tap, every pattern's squared distances `|o + s|^2`, sorted, padded with `inf` to
+    `m = 2^ceil(log2 n)` and laid out pattern after pattern (one row of `p m` per tap)."""
+    o = jnp.asarray(offsets, points.dtype)
+    d2 = jnp.sort(((o[:, None, None, :] + points[None]) ** 2).sum(-1), axis=-1)
+    n = points.shape[1]
+    m = 1 << (n - 1).bit_length()
+    d2 = jnp.pad(d2, ((0, 0), (0, 0), (0, m - n)), constant_values=jnp.inf)
+    return d2.reshape(len(offsets), -1)
+
+
+def count_below(row: Float[Array, " pm"], base: Int[Array, "h w"], r2: Array, m: int) -> Array:
+    """`#{k : row[base + k] <= r2, 0 <= k < m}` for ascending `row[base : base + m]`: a branchless
+    binary search (`log2 m + 1` look-ups)."""
+    idx = jnp.zeros_like(base)
+    step = m // 2
+    while step >= 1:  # invariant: row[base + idx - 1] <= r2 (or idx = 0)
+        idx = jnp.where(row[base + idx + step - 1] <= r2, idx + step, idx)
+        step //= 2
+    return idx + (row[base + idx] <= r2).astype(idx.dtype)
 
 
 def jitter_filter(
@@ -59,26 +93,30 @@ def jitter_filter(
     """Scatter with coverage estimated from `samples` jittered points per output pixel."""
     dtype = image.dtype
     r = lax.stop_gradient(radius)
-    pts = jitter_points(key, r.shape, samples, dtype)
     offsets = tap_offsets(max_radius)
+    # A concrete key (the usual case, also when closed over under jit) makes the thresholds and the
+    # pattern choice compile-time constants: the precomputed set. A traced key builds them per call.
+    with jax.ensure_compile_time_eval() if is_concrete(key) else contextlib.nullcontext():
+        k_points, k_choice = jax.random.split(key)
+        table = hit_thresholds(jitter_points(k_points, PATTERNS, samples, dtype), offsets)
+        m = table.shape[1] // PATTERNS
+        base = jax.random.randint(k_choice, r.shape, 0, PATTERNS, jnp.int32) * m  # pattern's row
     small = r <= 0.5
     inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
     is_centre = np.all(offsets == 0, axis=-1).astype(np.float64)
 
     def weight(tap, src, out):
-        o, centre = tap
+        row, centre = tap
         r_s, inv_s = src
-        (p,) = out
-        # the output pixel's points relative to the source centre: o + s
-        d2 = (p[..., 0] + o[0]) ** 2 + (p[..., 1] + o[1]) ** 2
-        hits = (d2 <= (r_s * r_s)[..., None]).astype(dtype).sum(-1)
-        return jnp.where(r_s <= 0.5, centre, hits * inv_s)
+        (b,) = out
+        hits = count_below(row, b, r_s * r_s, m)
+        return jnp.where(r_s <= 0.5, centre, hits.astype(dtype) * inv_s)
 
     return gather_taps(
         image,
         offsets,
         weight,
-        per_tap=(jnp.asarray(offsets, dtype), jnp.asarray(is_centre, dtype)),
+        per_tap=(table, jnp.asarray(is_centre, dtype)),
         source=(r, inv_area),
-        output=(pts,),
+        output=(base,),
     )
