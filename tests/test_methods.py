@@ -18,6 +18,7 @@ from jaxdof._filters.layered import (
     assign_levels,
     assign_numpy,
     fft_length,
+    level_radii,
     sharp_first_level,
 )
 from jaxdof._filters.tabulated import radius_levels, tabulated_filter
@@ -345,6 +346,8 @@ def test_layered_level_radius_is_exact_in_float32(traced):
     assignment = None if traced else assign_numpy(radius, 4)
     _, levels = jax.jit(lambda r: assign_levels(r, 4, assignment))(jnp.asarray(radius))
     assert np.array_equal(np.asarray(levels), values)
+    if not traced:  # the levels a concrete map's kernels are built from at compile time
+        assert np.array_equal(level_radii(radius, assignment, 4).astype(np.float32), values)
     # and the render: the soft filter's to float32 FFT rounding
     image = rng.uniform(size=(320, 320, 3)).astype(np.float32)
     out = coc_filter(image, radius, method="auto", max_radius=8.0)
@@ -375,6 +378,18 @@ def test_layered_copies_the_sharp_level():
     assert _err(concrete, traced) < 1e-12 and _err(concrete, coc_filter(image, radius)) < 1e-12
     # every pixel sharp: no convolution at all, the image itself
     assert _err(f(image, np.full_like(radius, 0.3)), image) == 0.0
+
+
+def test_layered_concrete_map_binned_equals_traced():
+    """More radii than layers: the concrete map's levels (numpy means, kernels built at compile
+    time) are the traced map's (`assign_levels`), so the two renders agree to rounding."""
+    rng = np.random.default_rng(11)
+    image = rng.uniform(size=(21, 19, 3))
+    radius = np.where(rng.uniform(size=(21, 19)) < 0.3, 0.2, rng.uniform(1.0, 5.0, (21, 19)))
+    f = lambda i, r: coc_filter(i, r, method="layered", layers=4, max_radius=5.0)  # noqa: E731
+    concrete, traced = f(image, radius), jax.jit(f)(image, radius)
+    assert _err(concrete, traced) < 1e-12
+    assert _err(concrete, coc_filter(image, radius)) > 1e-3  # binned: not the soft filter
 
 
 def test_layered_float32_matches_soft():

@@ -16,7 +16,7 @@ from .auto import choose_method, distinct_levels
 from .common import check_image_and_radius, check_max_radius, is_concrete
 from .hard import hard_filter
 from .jitter import jitter_filter
-from .layered import assign_numpy, layered_filter, sharp_first_level
+from .layered import assign_numpy, layered_filter, level_radii, sharp_first_level
 from .occlusion import occlusion_filter
 from .soft_polygon import soft_polygon_filter
 from .spans import exact_soft_filter
@@ -270,7 +270,8 @@ def coc_filter(
     if method == "layered" and static_radius is not None:
         assignment = assign_numpy(static_radius, knobs["layers"])
         sharp = sharp_first_level(static_radius, assignment)
-        knobs = {**knobs, "assignment": assignment, "sharp_level": sharp}
+        levels = level_radii(static_radius, assignment, knobs["layers"])
+        knobs = {**knobs, "assignment": assignment, "sharp_level": sharp, "static_levels": levels}
     channels = image.shape[-1]
     if normalize:
         # filter a channel of ones alongside: the light each pixel would get from a flat field

@@ -147,27 +147,38 @@ def layered_filter(
     layers: int,
     assignment: np.ndarray | None = None,
     sharp_level: bool = False,
+    static_levels: np.ndarray | None = None,
 ) -> Float[Array, "h w c"]:
     """Sum over `layers` radius levels of (masked image) * (soft disc kernel), by FFT.
 
     `sharp_level=True` (known from a concrete map, see `sharp_first_level`): level 0 holds only
     radii `<= 1/2`, whose kernel is the identity, so its pixels are copied instead of convolved:
-    one FFT layer fewer.
+    one FFT layer fewer. `static_levels` (with `assignment`, from `level_radii` on a concrete map):
+    the levels' radii, so that the kernels' spectra are built once, at compile time.
     """
     h, w, c = image.shape
     dtype = image.dtype
     half = window_half_width(max_radius)
-    idx, levels = assign_levels(radius, layers, assignment)
     first = int(sharp_level)  # the first level that needs a convolution
-    kernels = disc_kernels(levels[first:], half)  # (L - first, k, k)
     # `W` zeros past the image suffice: a tap wrapping around either end lands in them. At least the
     # kernel's `2W + 1`, rounded up to a 5-smooth FFT length.
     hp, wp = (fft_length(max(n + half, 2 * half + 1)) for n in (h, w))
-    # kernel centred at index 0 with negative offsets wrapped: circular = linear conv on the padding
+
+    def kernel_spectra(levels):
+        kernels = disc_kernels(levels[first:], half)  # (L - first, k, k)
+        # centred at index 0 with negative offsets wrapped: circular = linear conv on the padding
+        kpad = jnp.zeros((layers - first, hp, wp), dtype)
+        kpad = kpad.at[:, : 2 * half + 1, : 2 * half + 1].set(kernels)
+        return jnp.fft.rfft2(jnp.roll(kpad, (-half, -half), axis=(1, 2)))  # (L, hp, wp//2+1)
+
+    if static_levels is None:
+        idx, levels = assign_levels(radius, layers, assignment)
+        kf = kernel_spectra(levels)
+    else:  # a concrete map: the spectra are compile-time constants (no radius gradient to keep)
+        idx = jnp.asarray(assignment, jnp.int32)
+        with jax.ensure_compile_time_eval():
+            kf = kernel_spectra(jnp.asarray(static_levels, dtype))
     n_conv = layers - first
-    kpad = jnp.zeros((n_conv, hp, wp), dtype).at[:, : 2 * half + 1, : 2 * half + 1].set(kernels)
-    kpad = jnp.roll(kpad, (-half, -half), axis=(1, 2))
-    kf = jnp.fft.rfft2(kpad)  # (L, hp, wp//2+1)
     chw = jnp.moveaxis(image, -1, 0)  # FFTs over the last two axes run ~2x faster on CPU
 
     def add_level(acc, level, kf_l):
@@ -188,6 +199,16 @@ def layered_filter(
     if sharp_level:
         out = out + image * (idx == 0).astype(dtype)[..., None]
     return out
+
+
+def level_radii(radius: np.ndarray, assignment: np.ndarray, layers: int) -> np.ndarray:
+    """`assign_levels`' level radii for a concrete map, in float64 numpy: the mean radius of each
+    level's pixels (radii `<= 1/2` as 0), 0 for an empty level."""
+    r = np.where(radius <= 0.5, 0, radius).astype(np.float64).reshape(-1)
+    flat = assignment.reshape(-1)
+    counts = np.bincount(flat, minlength=layers)
+    sums = np.bincount(flat, weights=r, minlength=layers)
+    return np.where(counts > 0, sums / np.maximum(counts, 1), 0.0)
 
 
 def sharp_first_level(radius: np.ndarray, assignment: np.ndarray) -> bool:

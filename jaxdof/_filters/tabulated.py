@@ -76,16 +76,22 @@ def tabulated_filter(
 
 def _classes_written_out(image, rho, idx, offsets: np.ndarray) -> Array:
     """The same sum, the class loop written out: each class's weighted source is formed once (one
-    look-up per class, not per tap) and read at each of its mirrored offsets."""
+    look-up per class, not per tap) and read at each of its mirrored offsets.
+
+    Channels first inside: XLA fuses the whole sum into one loop, which vectorises along the image
+    rows instead of the 3 channels (R = 2, three levels, RGB float32, CPU, one run: 0.5x the time
+    at 48^2, 0.56x at 256^2, 1.1x at 1024^2 against channels last).
+    """
     h, w, _ = image.shape
     pad = half_width(offsets)
-    pimg, pidx = pad_rows_cols(image, pad), pad_rows_cols(idx, pad)
-    out = jnp.zeros_like(image)
+    pimg = jnp.pad(jnp.moveaxis(image, -1, 0), ((0, 0), (pad, pad), (pad, pad)))
+    pidx = pad_rows_cols(idx, pad)
+    out = jnp.zeros((image.shape[-1], h, w), image.dtype)
     for canonical, mirrors in mirror_classes(offsets).values():
         geometry = _offset_geometry(canonical, image.dtype)
         for n, images in enumerate(mirrors):
             row = tap_weight(*(g[n] for g in geometry), rho)
-            source = pimg * _look_up(row, pidx)[..., None]
+            source = pimg * _look_up(row, pidx)[None]
             for oy, ox in images:
-                out = out + source[pad - oy : pad - oy + h, pad - ox : pad - ox + w]
-    return out
+                out = out + source[:, pad - oy : pad - oy + h, pad - ox : pad - ox + w]
+    return jnp.moveaxis(out, 0, -1)
