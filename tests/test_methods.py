@@ -147,13 +147,15 @@ def test_jitter_converges_to_soft_and_is_unbiased():
     assert _err(mean8, soft) < 0.6 * np.mean([_err(one(16, k), soft) for k in keys[:4]])
 
 
+@pytest.mark.parametrize("rmax", [3.0, 13.0])  # the dense gather, and row spans (R >= 12)
 @pytest.mark.parametrize("samples", [1, 5, 16])
-def test_jitter_equals_its_definition(samples):
+def test_jitter_equals_its_definition(samples, rmax):
     # the binary search over sorted thresholds against the paper's direct test of every point
-    from jaxdof._filters.jitter import PATTERNS, jitter_points
+    from jaxdof._filters.jitter import JITTER_SPANS_MIN_RADIUS, PATTERNS, jitter_points
 
-    image, radius = _scene(9, 11, 3.0, seed=3)
-    radius[2, 3], radius[4, 4] = 0.5, 0.0  # the identity branch
+    assert (rmax >= JITTER_SPANS_MIN_RADIUS) == (rmax > 3)
+    image, radius = _scene(9, 11, rmax, seed=3)
+    radius[2, 3], radius[4, 4], radius[5, 6] = 0.5, 0.0, rmax  # the identity branch; the window
     out = np.asarray(coc_filter(image, radius, method="jitter", samples=samples, key=KEY))
     k_points, k_choice = jax.random.split(KEY)
     pts = np.asarray(jitter_points(k_points, PATTERNS, samples, jnp.float64))
@@ -175,6 +177,22 @@ def test_jitter_equals_its_definition(samples):
     knobs = {"method": "jitter", "samples": samples, "max_radius": float(radius.max())}
     traced = jax.jit(lambda k: coc_filter(image, radius, key=k, **knobs))
     np.testing.assert_allclose(traced(KEY), out, rtol=1e-14, atol=1e-15)  # same hits; rounding
+
+
+@pytest.mark.parametrize("rmax", [3.0, 8.0, 13.0, 30.0])
+def test_jitter_spans_equal_the_dense_gather(rmax):
+    """Row spans give every fully covered pixel all `n` hits and count only the boundary taps: the
+    same counts as the dense gather's, so the same image to rounding, at any window."""
+    from jaxdof._filters.jitter import jitter_filter
+
+    image, radius = _scene(23, 29, rmax, seed=4)
+    radius[::5, ::4] = 0.3  # sharp sources among the blurred ones
+    image, radius = jnp.asarray(image), jnp.asarray(radius)
+    for n in (1, 5, 16):
+        f = lambda path, n=n: jitter_filter(  # noqa: E731
+            image, radius, max_radius=rmax, samples=n, key=KEY, path=path
+        )
+        assert _err(f("spans"), f("dense")) < 1e-13
 
 
 # --- energy --------------------------------------------------------------------------------------

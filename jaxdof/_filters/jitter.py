@@ -41,11 +41,14 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 from .common import is_concrete, tap_offsets
+from .spans import spans_filter, spans_layout
 from .taps import gather_taps
 
 
 #: Latin hypercubes drawn per key; each output pixel uses one, picked at random.
 PATTERNS = 16
+#: `path="auto"` uses row spans from this window radius on (see `jitter_filter`).
+JITTER_SPANS_MIN_RADIUS = 12.0
 
 
 def jitter_points(key: Array, count: int, samples: int, dtype) -> Float[Array, "count n 2"]:
@@ -89,18 +92,38 @@ def jitter_filter(
     max_radius: float,
     samples: int,
     key: Array,
+    path: str = "auto",
 ) -> Float[Array, "h w c"]:
-    """Scatter with coverage estimated from `samples` jittered points per output pixel."""
+    """Scatter with coverage estimated from `samples` jittered points per output pixel.
+
+    `path`: `"dense"` (a gather over every tap), `"spans"` (row spans for the fully covered pixels,
+    where every point hits, and counts only on the boundary taps: `spans.py`), or `"auto"`: spans
+    from `JITTER_SPANS_MIN_RADIUS` on. The same counts either way (the numbers agree to rounding).
+    """
     dtype = image.dtype
     r = lax.stop_gradient(radius)
-    offsets = tap_offsets(max_radius)
+    spans = path == "spans" or (path == "auto" and max_radius >= JITTER_SPANS_MIN_RADIUS)
+    if spans:  # every offset the boundary taps reach, those the window drops never hit
+        e = spans_layout(1, 1, max_radius)[0]
+        o = np.arange(-e, e + 1)
+        offsets = np.stack(np.meshgrid(o, o, indexing="ij"), -1).reshape(-1, 2).astype(np.int32)
+    else:
+        offsets = tap_offsets(max_radius)
     # A concrete key (the usual case, also when closed over under jit) makes the thresholds and the
     # pattern choice compile-time constants: the precomputed set. A traced key builds them per call.
     with jax.ensure_compile_time_eval() if is_concrete(key) else contextlib.nullcontext():
         k_points, k_choice = jax.random.split(key)
         table = hit_thresholds(jitter_points(k_points, PATTERNS, samples, dtype), offsets)
         m = table.shape[1] // PATTERNS
-        base = jax.random.randint(k_choice, r.shape, 0, PATTERNS, jnp.int32) * m  # pattern's row
+        choice = jax.random.randint(k_choice, r.shape, 0, PATTERNS, jnp.int32)
+    if spans:
+        reach = tap_offsets(max_radius)
+        e = (len(o) - 1) // 2
+        dropped = np.ones((len(o), len(o)), bool)
+        dropped[reach[:, 0] + e, reach[:, 1] + e] = False
+        table = jnp.where(jnp.asarray(dropped.reshape(-1, 1)), jnp.inf, table)
+        return _jitter_spans(image, r, max_radius, samples, table.reshape(-1), choice, m, e)
+    base = choice * m  # each output pixel's pattern's row
     small = r <= 0.5
     inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
     is_centre = np.all(offsets == 0, axis=-1).astype(np.float64)
@@ -120,3 +143,24 @@ def jitter_filter(
         source=(r, inv_area),
         output=(base,),
     )
+
+
+def _jitter_spans(image, r, max_radius, samples, table, choice, m, e):
+    """The jittered scatter by row spans: a fully covered pixel gets all `n` hits (`1 / (pi r^2)`,
+    the spans' weight); the boundary taps count the hits of their output pixel's pattern."""
+    h, w, _ = image.shape
+    pad, hp, wp = spans_layout(h, w, max_radius)
+    choice_flat = jnp.zeros((hp, wp), jnp.int32).at[pad : pad + h, pad : pad + w].set(choice)
+    choice_flat = choice_flat.reshape(-1)
+    small = r <= 0.5
+    inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
+    r2 = r * r
+    side = 2 * e + 1
+
+    def partial(target, dy, dx):
+        pattern = jnp.take(choice_flat, target, mode="clip")  # a dropped duplicate: any pattern
+        tap = (dy + e).astype(jnp.int32) * side + (dx + e).astype(jnp.int32)
+        hits = count_below(table, (tap * PATTERNS + pattern) * m, r2, m)
+        return hits.astype(r.dtype) * inv_area
+
+    return spans_filter(image, r, max_radius=max_radius, partial=partial)

@@ -65,6 +65,7 @@ R = 40 against issue 2's bound, 2e-5 of the image's range.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -112,20 +113,29 @@ def exact_soft_filter(
 
 
 def spans_filter(
-    image: Float[Array, "h w c"], radius: Float[Array, "h w"], *, max_radius: float
+    image: Float[Array, "h w c"],
+    radius: Float[Array, "h w"],
+    *,
+    max_radius: float,
+    partial: Callable[[Array, Array, Array], Array] | None = None,
 ) -> Float[Array, "h w c"]:
     """The soft filter's exact scatter by row spans and boundary taps (module docstring).
 
     Same contract as `jaxdof._filters.soft.soft_filter`: `image` (H, W, C), `radius` (H, W) in
     pixels, already clamped to `max_radius` (static); radii `<= 1/2` are the identity.
+
+    `partial(target, dy, dx) -> (H, W)`: another weight for the boundary taps (not fully covered
+    pixels), given each source's output pixel as an index into the flat padded buffer (`PAD +
+    wp`-strided, see `spans_layout`; out-of-range for a dropped duplicate) and the offset `(dy, dx)`
+    from source to output. It must be 0 for radii `<= 1/2`. Fully covered pixels keep the weight
+    `1 / (pi r^2)`. `jitter` uses this: its estimate is exact on fully covered pixels.
     """
     h, w, c = image.shape
     dtype = image.dtype
     wh = window_half_width(max_radius)
     if wh == 0:  # every disc fits inside its own pixel
         return image
-    pad = wh + TAPS  # every mark and tap lands inside the padded buffers
-    hp, wp = h + 2 * pad, w + 2 * pad + 1
+    pad, hp, wp = spans_layout(h, w, max_radius)
 
     big = radius > 0.5
     rs = jnp.where(big, radius, 1)
@@ -190,17 +200,27 @@ def spans_filter(
         for t in range(TAPS):
             j = j0 + t
             ji = j.astype(jnp.int32)
-            side = image * weight(j, mm)[..., None]
+            side = None if partial else image * weight(j, mm)[..., None]
             centre = jnp.where(ji == 0, skip, 0)  # (0, 0) is on the right side only
-            for row in (base + m * wp, base - m * wp + twin):
-                boundary = add(boundary, row + ji, side)
-                boundary = add(boundary, row - ji + centre, side)
+            for sy, row in ((1, base + m * wp), (-1, base - m * wp + twin)):
+                for sx, target in ((1, row + ji), (-1, row - ji + centre)):
+                    upd = (
+                        side
+                        if side is not None
+                        else image * partial(target, sy * mm, sx * j)[..., None]
+                    )
+                    boundary = add(boundary, target, upd)
             k = k0 + t
             ki = k.astype(jnp.int32) * wp
-            cap = image * weight(mm, k)[..., None]
-            for col in (base + m, base - m + twin):  # column -0 is column +0
-                boundary = add(boundary, col + ki, cap)
-                boundary = add(boundary, col - ki, cap)
+            cap = None if partial else image * weight(mm, k)[..., None]
+            for sx, col in ((1, base + m), (-1, base - m + twin)):  # column -0 is column +0
+                for sy, target in ((1, col + ki), (-1, col - ki)):
+                    upd = (
+                        cap
+                        if cap is not None
+                        else image * partial(target, sy * k, sx * mm)[..., None]
+                    )
+                    boundary = add(boundary, target, upd)
         return (boundary, marks), None
 
     def scan(step, carry, lo, hi):
@@ -219,6 +239,13 @@ def spans_filter(
     boundary, marks = (b.reshape(hp, wp, c) for b in carry)
     out = boundary + jnp.cumsum(marks, axis=1)
     return out[pad : pad + h, pad : pad + w] + sharp
+
+
+def spans_layout(h: int, w: int, max_radius: float) -> tuple[int, int, int]:
+    """`(pad, hp, wp)`: the flat buffers hold pixel `(y, x)` of the frame at `(y + pad) * wp + x +
+    pad`, with `hp x wp` padded pixels; every mark and tap lands inside."""
+    pad = window_half_width(max_radius) + TAPS
+    return pad, h + 2 * pad, w + 2 * pad + 1
 
 
 __all__ = ["SPANS_MIN_RADIUS", "exact_soft_filter", "spans_filter"]
