@@ -22,6 +22,11 @@ before the image is seen; sorted, the hit count of a source of radius `r` is the
 `r^2`, a binary search of `log2(n) + 1` look-ups instead of `n` distance tests. Same estimate, same
 expectation.
 
+**Row spans for large windows.** Every point of a fully covered pixel hits, so there the estimate
+is exact: `1 / (pi r^2)`, the soft filter's weight. From `JITTER_SPANS_MIN_RADIUS` on, those pixels
+are added as row spans and only the partially covered ones count hits (`spans.py`, whose boundary
+taps take a per-output-pixel weight for this): `O(r)` work per source instead of `O(r^2)`.
+
 The same `key` always gives the same points and the same image (`normalize=True` reuses them for the
 flat field).
 
@@ -47,7 +52,9 @@ from .taps import gather_taps
 
 #: Latin hypercubes drawn per key; each output pixel uses one, picked at random.
 PATTERNS = 16
-#: `path="auto"` uses row spans from this window radius on (see `jitter_filter`).
+#: `path="auto"` uses row spans from this window radius on (see `jitter_filter`). Measured on the
+#: 2-core CPU (RGB float32, n = 4 and 64, one run): spans / dense time 1.0-2.4 at R = 8, 0.86-1.2
+#: at R = 12, 0.36-0.75 at R = 24 (48^2 and 256^2), the same crossover as the soft filter's.
 JITTER_SPANS_MIN_RADIUS = 12.0
 
 
