@@ -53,8 +53,8 @@ from .taps import gather_taps
 #: Latin hypercubes drawn per key; each output pixel uses one, picked at random.
 PATTERNS = 16
 #: `path="auto"` uses row spans from this window radius on (see `jitter_filter`). Measured on the
-#: 2-core CPU (RGB float32, n = 4 and 64, one run): spans / dense time 1.0-2.4 at R = 8, 0.86-1.2
-#: at R = 12, 0.36-0.75 at R = 24 (48^2 and 256^2), the same crossover as the soft filter's.
+#: 2-core CPU (RGB float32, n = 4 and 64, one run): spans / dense time 0.70-1.5 at R = 8 (48^2),
+#: 0.56-1.5 at R = 12, 0.20-0.48 at R = 24 (48^2 and 256^2): the soft filter's crossover.
 JITTER_SPANS_MIN_RADIUS = 12.0
 
 
@@ -81,9 +81,9 @@ def hit_thresholds(points: Float[Array, "p n 2"], offsets: np.ndarray) -> Float[
     return d2.reshape(len(offsets), -1)
 
 
-def count_below(row: Float[Array, " pm"], base: Int[Array, "h w"], r2: Array, m: int) -> Array:
-    """`#{k : row[base + k] <= r2, 0 <= k < m}` for ascending `row[base : base + m]`: a branchless
-    binary search (`log2 m + 1` look-ups)."""
+def count_below(row: Float[Array, " pm"], base: Int[Array, "*b h w"], r2: Array, m: int) -> Array:
+    """`#{k : row[base + k] <= r2, 0 <= k < m}` for ascending `row[base : base + m]`, elementwise
+    over `base` (`r2` of the same rank, broadcast against it): a branchless binary search (`log2 m + 1` look-ups)."""
     idx = jnp.zeros_like(base)
     step = m // 2
     while step >= 1:  # invariant: row[base + idx - 1] <= r2 (or idx = 0)
@@ -167,7 +167,7 @@ def _jitter_spans(image, r, max_radius, samples, table, choice, m, e):
     def partial(target, dy, dx):
         pattern = jnp.take(choice_flat, target, mode="clip")  # a dropped duplicate: any pattern
         tap = (dy + e).astype(jnp.int32) * side + (dx + e).astype(jnp.int32)
-        hits = count_below(table, (tap * PATTERNS + pattern) * m, r2, m)
-        return hits.astype(r.dtype) * inv_area
+        hits = count_below(table, (tap * PATTERNS + pattern) * m, r2[None], m)  # (taps, H, W)
+        return hits.astype(r.dtype) * inv_area[None]
 
     return spans_filter(image, r, max_radius=max_radius, partial=partial)

@@ -124,11 +124,12 @@ def spans_filter(
     Same contract as `jaxdof._filters.soft.soft_filter`: `image` (H, W, C), `radius` (H, W) in
     pixels, already clamped to `max_radius` (static); radii `<= 1/2` are the identity.
 
-    `partial(target, dy, dx) -> (H, W)`: another weight for the boundary taps (not fully covered
-    pixels), given each source's output pixel as an index into the flat padded buffer (`PAD +
-    wp`-strided, see `spans_layout`; out-of-range for a dropped duplicate) and the offset `(dy, dx)`
-    from source to output. It must be 0 for radii `<= 1/2`. Fully covered pixels keep the weight
-    `1 / (pi r^2)`. `jitter` uses this: its estimate is exact on fully covered pixels.
+    `partial(target, dy, dx) -> (T, H, W)`: another weight for the boundary taps (the pixels not
+    fully covered), given for the `T` taps of a step at once: each source's output pixel as an
+    index into the flat padded buffers (layout of `spans_layout`; out of range for a dropped
+    duplicate) and the offset `(dy, dx)` from source to output pixel. It must be 0 for radii
+    `<= 1/2`. Fully covered pixels keep the weight `1 / (pi r^2)`. `jitter` uses this: its
+    estimate is exact on fully covered pixels.
     """
     h, w, c = image.shape
     dtype = image.dtype
@@ -197,30 +198,26 @@ def spans_filter(
         twin = jnp.where(m == 0, skip, 0)
         j0 = jnp.maximum(a + 1, mf)  # sides: j = +-(j0 + t), t < TAPS, in rows +-m
         k0 = jnp.maximum(a + 1, mf + 1)  # caps: k = +-(k0 + t), in columns +-m
+        taps = []  # (target, dy, dx, shared weighted source or None) of every boundary pixel
         for t in range(TAPS):
             j = j0 + t
             ji = j.astype(jnp.int32)
             side = None if partial else image * weight(j, mm)[..., None]
             centre = jnp.where(ji == 0, skip, 0)  # (0, 0) is on the right side only
             for sy, row in ((1, base + m * wp), (-1, base - m * wp + twin)):
-                for sx, target in ((1, row + ji), (-1, row - ji + centre)):
-                    upd = (
-                        side
-                        if side is not None
-                        else image * partial(target, sy * mm, sx * j)[..., None]
-                    )
-                    boundary = add(boundary, target, upd)
+                taps += [(row + ji, sy * mm, j, side), (row - ji + centre, sy * mm, -j, side)]
             k = k0 + t
             ki = k.astype(jnp.int32) * wp
             cap = None if partial else image * weight(mm, k)[..., None]
             for sx, col in ((1, base + m), (-1, base - m + twin)):  # column -0 is column +0
-                for sy, target in ((1, col + ki), (-1, col - ki)):
-                    upd = (
-                        cap
-                        if cap is not None
-                        else image * partial(target, sy * k, sx * mm)[..., None]
-                    )
-                    boundary = add(boundary, target, upd)
+                taps += [(col + ki, k, sx * mm, cap), (col - ki, -k, sx * mm, cap)]
+        if partial is None:  # the soft weight is shared by the mirrored pixels
+            for target, _, _, upd in taps:
+                boundary = add(boundary, target, upd)
+        else:  # one weight per pixel, all of the step's taps at once (a smaller program)
+            target, dy, dx = (jnp.stack([tap[i] for tap in taps]) for i in range(3))
+            wgt = partial(target, dy, dx)
+            boundary = add(boundary, target, image[None] * wgt[..., None])
         return (boundary, marks), None
 
     def scan(step, carry, lo, hi):
