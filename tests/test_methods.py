@@ -193,6 +193,8 @@ def test_jitter_spans_equal_the_dense_gather(rmax):
             image, radius, max_radius=rmax, samples=n, key=KEY, path=path
         )
         assert _err(f("spans"), f("dense")) < 1e-13
+    with pytest.raises(ValueError, match="path='rows' is not one of"):
+        f("rows")
 
 
 # --- energy --------------------------------------------------------------------------------------

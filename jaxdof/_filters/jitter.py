@@ -46,7 +46,7 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 from .common import is_concrete, tap_offsets
-from .spans import spans_filter, spans_layout
+from .spans import PATHS, spans_filter, spans_layout
 from .taps import gather_taps
 
 
@@ -83,7 +83,8 @@ def hit_thresholds(points: Float[Array, "p n 2"], offsets: np.ndarray) -> Float[
 
 def count_below(row: Float[Array, " pm"], base: Int[Array, "*b h w"], r2: Array, m: int) -> Array:
     """`#{k : row[base + k] <= r2, 0 <= k < m}` for ascending `row[base : base + m]`, elementwise
-    over `base` (`r2` of the same rank, broadcast against it): a branchless binary search (`log2 m + 1` look-ups)."""
+    over `base` (`r2` of the same rank, broadcast against it): a branchless binary search, `log2 m
+    + 1` look-ups."""
     idx = jnp.zeros_like(base)
     step = m // 2
     while step >= 1:  # invariant: row[base + idx - 1] <= r2 (or idx = 0)
@@ -107,6 +108,8 @@ def jitter_filter(
     where every point hits, and counts only on the boundary taps: `spans.py`), or `"auto"`: spans
     from `JITTER_SPANS_MIN_RADIUS` on. The same counts either way (the numbers agree to rounding).
     """
+    if path not in PATHS:
+        raise ValueError(f"{path=} is not one of {PATHS}")
     dtype = image.dtype
     r = lax.stop_gradient(radius)
     spans = path == "spans" or (path == "auto" and max_radius >= JITTER_SPANS_MIN_RADIUS)
