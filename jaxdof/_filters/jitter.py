@@ -112,13 +112,12 @@ def jitter_filter(
         raise ValueError(f"{path=} is not one of {PATHS}")
     dtype = image.dtype
     r = lax.stop_gradient(radius)
+    small = r <= 0.5
+    inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
     spans = path == "spans" or (path == "auto" and max_radius >= JITTER_SPANS_MIN_RADIUS)
-    if spans:  # every offset the boundary taps reach, those the window drops never hit
-        e = spans_layout(1, 1, max_radius)[0]
-        o = np.arange(-e, e + 1)
-        offsets = np.stack(np.meshgrid(o, o, indexing="ij"), -1).reshape(-1, 2).astype(np.int32)
-    else:
-        offsets = tap_offsets(max_radius)
+    pad, _, _ = spans_layout(*r.shape, max_radius)
+    # spans: every offset the boundary taps reach (a square of half-width `pad`); dense: the window
+    offsets = _square(pad) if spans else tap_offsets(max_radius)
     # A concrete key (the usual case, also when closed over under jit) makes the thresholds and the
     # pattern choice compile-time constants: the precomputed set. A traced key builds them per call.
     with jax.ensure_compile_time_eval() if is_concrete(key) else contextlib.nullcontext():
@@ -127,15 +126,13 @@ def jitter_filter(
         m = table.shape[1] // PATTERNS
         choice = jax.random.randint(k_choice, r.shape, 0, PATTERNS, jnp.int32)
     if spans:
-        reach = tap_offsets(max_radius)
-        e = (len(o) - 1) // 2
-        dropped = np.ones((len(o), len(o)), bool)
-        dropped[reach[:, 0] + e, reach[:, 1] + e] = False
-        table = jnp.where(jnp.asarray(dropped.reshape(-1, 1)), jnp.inf, table)
-        return _jitter_spans(image, r, max_radius, samples, table.reshape(-1), choice, m, e)
+        # the square's offsets outside the window are never hit, as in the dense gather
+        outside = np.ones((2 * pad + 1,) * 2, bool)
+        reach = tap_offsets(max_radius) + pad
+        outside[reach[:, 0], reach[:, 1]] = False
+        table = jnp.where(jnp.asarray(outside.reshape(-1, 1)), jnp.inf, table)
+        return _jitter_spans(image, r, max_radius, inv_area, table.reshape(-1), choice, m)
     base = choice * m  # each output pixel's pattern's row
-    small = r <= 0.5
-    inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
     is_centre = np.all(offsets == 0, axis=-1).astype(np.float64)
 
     def weight(tap, src, out):
@@ -155,21 +152,26 @@ def jitter_filter(
     )
 
 
-def _jitter_spans(image, r, max_radius, samples, table, choice, m, e):
+def _square(half: int) -> np.ndarray:
+    """Every integer offset `(oy, ox)` with `|oy|, |ox| <= half`, row-major, `(n, 2)` int32."""
+    o = np.arange(-half, half + 1)
+    return np.stack(np.meshgrid(o, o, indexing="ij"), -1).reshape(-1, 2).astype(np.int32)
+
+
+def _jitter_spans(image, r, max_radius, inv_area, table, choice, m):
     """The jittered scatter by row spans: a fully covered pixel gets all `n` hits (`1 / (pi r^2)`,
-    the spans' weight); the boundary taps count the hits of their output pixel's pattern."""
+    the spans' weight); the boundary taps count the hits of their output pixel's pattern.
+    `table`: `hit_thresholds` over `_square(pad)`, flattened."""
     h, w, _ = image.shape
     pad, hp, wp = spans_layout(h, w, max_radius)
     choice_flat = jnp.zeros((hp, wp), jnp.int32).at[pad : pad + h, pad : pad + w].set(choice)
     choice_flat = choice_flat.reshape(-1)
-    small = r <= 0.5
-    inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
     r2 = r * r
-    side = 2 * e + 1
+    side = 2 * pad + 1
 
     def partial(target, dy, dx):
         pattern = jnp.take(choice_flat, target, mode="clip")  # a dropped duplicate: any pattern
-        tap = (dy + e).astype(jnp.int32) * side + (dx + e).astype(jnp.int32)
+        tap = (dy + pad).astype(jnp.int32) * side + (dx + pad).astype(jnp.int32)
         hits = count_below(table, (tap * PATTERNS + pattern) * m, r2[None], m)  # (taps, H, W)
         return hits.astype(r.dtype) * inv_area[None]
 

@@ -160,6 +160,7 @@ def layered_filter(
     dtype = image.dtype
     half = window_half_width(max_radius)
     first = int(sharp_level)  # the first level that needs a convolution
+    n_conv = layers - first
     # `W` zeros past the image suffice: a tap wrapping around either end lands in them. At least the
     # kernel's `2W + 1`, rounded up to a 5-smooth FFT length.
     hp, wp = (fft_length(max(n + half, 2 * half + 1)) for n in (h, w))
@@ -167,7 +168,7 @@ def layered_filter(
     def kernel_spectra(levels):
         kernels = disc_kernels(levels[first:], half)  # (L - first, k, k)
         # centred at index 0 with negative offsets wrapped: circular = linear conv on the padding
-        kpad = jnp.zeros((layers - first, hp, wp), dtype)
+        kpad = jnp.zeros((n_conv, hp, wp), dtype)
         kpad = kpad.at[:, : 2 * half + 1, : 2 * half + 1].set(kernels)
         return jnp.fft.rfft2(jnp.roll(kpad, (-half, -half), axis=(1, 2)))  # (L, hp, wp//2+1)
 
@@ -178,7 +179,6 @@ def layered_filter(
         idx = jnp.asarray(assignment, jnp.int32)
         with jax.ensure_compile_time_eval():
             kf = kernel_spectra(jnp.asarray(static_levels, dtype))
-    n_conv = layers - first
     chw = jnp.moveaxis(image, -1, 0)  # FFTs over the last two axes run ~2x faster on CPU
 
     def add_level(acc, level, kf_l):
