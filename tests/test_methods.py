@@ -147,16 +147,24 @@ def test_jitter_converges_to_soft_and_is_unbiased():
     assert _err(mean8, soft) < 0.6 * np.mean([_err(one(16, k), soft) for k in keys[:4]])
 
 
-@pytest.mark.parametrize("rmax", [3.0, 13.0])  # the dense gather, and row spans (R >= 12)
-@pytest.mark.parametrize("samples", [1, 5, 16])
-def test_jitter_equals_its_definition(samples, rmax):
-    # the binary search over sorted thresholds against the paper's direct test of every point
-    from jaxdof._filters.jitter import JITTER_SPANS_MIN_RADIUS, PATTERNS, jitter_points
+@pytest.mark.parametrize("path, rmax", [("dense", 3.0), ("spans", 13.0)])
+@pytest.mark.parametrize("samples", [1, 5, 16, 40])  # 40: the binary search
+def test_jitter_equals_its_definition(samples, path, rmax):
+    # the counts over precomputed thresholds against the paper's direct test of every point
+    from jaxdof._filters.jitter import PATTERNS, jitter_filter, jitter_points
 
-    assert (rmax >= JITTER_SPANS_MIN_RADIUS) == (rmax > 3)
     image, radius = _scene(9, 11, rmax, seed=3)
     radius[2, 3], radius[4, 4], radius[5, 6] = 0.5, 0.0, rmax  # the identity branch; the window
-    out = np.asarray(coc_filter(image, radius, method="jitter", samples=samples, key=KEY))
+    out = np.asarray(
+        jitter_filter(
+            jnp.asarray(image),
+            jnp.asarray(radius),
+            max_radius=rmax,
+            samples=samples,
+            key=KEY,
+            path=path,
+        )
+    )
     k_points, k_choice = jax.random.split(KEY)
     pts = np.asarray(jitter_points(k_points, PATTERNS, samples, jnp.float64))
     choice = np.asarray(jax.random.randint(k_choice, radius.shape, 0, PATTERNS, jnp.int32))
@@ -173,10 +181,13 @@ def test_jitter_equals_its_definition(samples, rmax):
                 wgt = np.sum(d2 <= r * r) / (math.pi * r * r * samples)
             ref[y, x] += wgt * image[qy, qx]
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-14)
-    # a traced key builds the same thresholds at run time (a concrete one at compile time)
-    knobs = {"method": "jitter", "samples": samples, "max_radius": float(radius.max())}
+    # the public method (whichever path it picks: same counts) and a traced key, which builds the
+    # thresholds at run time (a concrete one at compile time)
+    knobs = {"method": "jitter", "samples": samples, "max_radius": rmax}
+    public = coc_filter(image, radius, key=KEY, **knobs)
+    np.testing.assert_allclose(public, out, rtol=1e-12)  # spans and dense round differently
     traced = jax.jit(lambda k: coc_filter(image, radius, key=k, **knobs))
-    np.testing.assert_allclose(traced(KEY), out, rtol=1e-14, atol=1e-15)  # same hits; rounding
+    np.testing.assert_allclose(traced(KEY), public, rtol=1e-14, atol=1e-15)  # same hits; rounding
 
 
 @pytest.mark.parametrize("rmax", [3.0, 8.0, 13.0, 30.0])

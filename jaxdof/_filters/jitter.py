@@ -18,12 +18,13 @@ their pixel untouched, as in the soft filter.
 "unless using a precomputed set of numbers"; so `key` draws `PATTERNS` (16) Latin hypercubes once,
 and every output pixel uses one of them, picked at random (also from `key`, so no period shows).
 For a tap at offset `o` and pattern `j` the squared distances `|o + s_{j,k}|^2` are then known
-before the image is seen; sorted, the hit count of a source of radius `r` is their number below
-`r^2`, a binary search of `log2(n) + 1` look-ups instead of `n` distance tests. Same estimate, same
-expectation.
+before the image is seen, and the hit count of a source of radius `r` is their number below `r^2`:
+`n` comparisons against the pattern's precomputed row, fetched in one look-up per tap (up to
+`COMPARE_ALL_MAX` points), or beyond that a binary search in the sorted row, `log2(n) + 1`
+look-ups. Same estimate, same expectation.
 
 **Row spans for large windows.** Every point of a fully covered pixel hits, so there the estimate
-is exact: `1 / (pi r^2)`, the soft filter's weight. From `JITTER_SPANS_MIN_RADIUS` on, those pixels
+is exact: `1 / (pi r^2)`, the soft filter's weight. From `spans_min_radius(n)` on, those pixels
 are added as row spans and only the partially covered ones count hits (`spans.py`, whose boundary
 taps take a per-output-pixel weight for this): `O(r)` work per source instead of `O(r^2)`.
 
@@ -52,10 +53,25 @@ from .taps import gather_taps
 
 #: Latin hypercubes drawn per key; each output pixel uses one, picked at random.
 PATTERNS = 16
-#: `path="auto"` uses row spans from this window radius on (see `jitter_filter`). Measured on the
-#: 2-core CPU (RGB float32, n = 4 and 64, one run): spans / dense time 0.70-1.5 at R = 8 (48^2),
-#: 0.56-1.5 at R = 12, 0.20-0.48 at R = 24 (48^2 and 256^2): the soft filter's crossover.
-JITTER_SPANS_MIN_RADIUS = 12.0
+#: `path="auto"` uses row spans from this window radius on, looked up by the number of points `n`
+#: (the first key `>= n`). The dense gather compares `n` thresholds at `~pi R^2` taps; the spans
+#: only at `O(R)` boundary taps, but pay scatters that do not shrink with `n`: the more points, the
+#: smaller the crossover. Measured on the 2-core CPU (smooth depth, RGB float32, 48^2 and 256^2,
+#: one run; spans / dense time): n = 4: 2.6-4.4 at R = 8, 1.2-1.6 at 16, 0.8-1.1 at 24; n = 16:
+#: 1.3-1.6 at 8, 0.7-1.1 at 12, 0.5-0.8 at 16; n = 64: 0.7-1.3 at 8, 0.5-0.8 at 12.
+JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, 64: 10.0}
+
+
+def spans_min_radius(samples: int) -> float:
+    """The window radius from which `path="auto"` takes row spans for `samples` points per pixel."""
+    return next((r for n, r in JITTER_SPANS_MIN_RADIUS.items() if samples <= n), 10.0)
+
+
+#: `count_below` compares against every threshold of the pixel's pattern up to this many per
+#: pattern (one gather of a row), and searches beyond. Measured on the 2-core CPU (256^2, RGB
+#: float32, R = 8, one run; time against the binary search): 0.34x at n = 4, 0.37x at 16, 0.44x at
+#: 32, 1.36x at 64.
+COMPARE_ALL_MAX = 32
 
 
 def jitter_points(key: Array, count: int, samples: int, dtype) -> Float[Array, "count n 2"]:
@@ -70,27 +86,38 @@ def jitter_points(key: Array, count: int, samples: int, dtype) -> Float[Array, "
     return jnp.stack([dy, dx], axis=-1)
 
 
-def hit_thresholds(points: Float[Array, "p n 2"], offsets: np.ndarray) -> Float[Array, "taps pm"]:
-    """Per tap, every pattern's squared distances `|o + s|^2`, sorted, padded with `inf` to
-    `m = 2^ceil(log2 n)` and laid out pattern after pattern (one row of `p m` per tap)."""
+def hit_thresholds(points: Float[Array, "p n 2"], offsets: np.ndarray) -> Float[Array, "taps p m"]:
+    """Per tap and pattern, the squared distances `|o + s|^2`, sorted; beyond `COMPARE_ALL_MAX`
+    points padded with `inf` to `m = 2^ceil(log2 n)`, the binary search's length."""
     o = jnp.asarray(offsets, points.dtype)
     d2 = jnp.sort(((o[:, None, None, :] + points[None]) ** 2).sum(-1), axis=-1)
     n = points.shape[1]
-    m = 1 << (n - 1).bit_length()
-    d2 = jnp.pad(d2, ((0, 0), (0, 0), (0, m - n)), constant_values=jnp.inf)
-    return d2.reshape(len(offsets), -1)
+    m = n if n <= COMPARE_ALL_MAX else 1 << (n - 1).bit_length()
+    return jnp.pad(d2, ((0, 0), (0, 0), (0, m - n)), constant_values=jnp.inf)
 
 
-def count_below(row: Float[Array, " pm"], base: Int[Array, "*b h w"], r2: Array, m: int) -> Array:
-    """`#{k : row[base + k] <= r2, 0 <= k < m}` for ascending `row[base : base + m]`, elementwise
-    over `base` (`r2` of the same rank, broadcast against it): a branchless binary search, `log2 m
-    + 1` look-ups."""
+def count_below(
+    rows: Float[Array, "k m"], pattern: Int[Array, "*b"], r2: Array
+) -> Int[Array, "*b"]:
+    """`#{k : rows[pattern, k] <= r2}` elementwise, for rows ascending (`r2` broadcast against
+    `pattern`'s shape).
+
+    Up to `COMPARE_ALL_MAX` thresholds per row: one gather of the pattern's whole row and `m`
+    comparisons; beyond it, a branchless binary search over the flattened rows (`log2 m + 1`
+    dependent single-element gathers, fewer comparisons).
+    """
+    m = rows.shape[1]
+    if m <= COMPARE_ALL_MAX:
+        below = rows.at[pattern].get(mode="promise_in_bounds") <= r2[..., None]
+        return below.sum(-1, dtype=pattern.dtype)
+    assert m & (m - 1) == 0, "the binary search needs rows of a power-of-two length"
+    flat, base = rows.reshape(-1), pattern * m
     idx = jnp.zeros_like(base)
     step = m // 2
-    while step >= 1:  # invariant: row[base + idx - 1] <= r2 (or idx = 0)
-        idx = jnp.where(row[base + idx + step - 1] <= r2, idx + step, idx)
+    while step >= 1:  # invariant: flat[base + idx - 1] <= r2 (or idx = 0)
+        idx = jnp.where(flat[base + idx + step - 1] <= r2, idx + step, idx)
         step //= 2
-    return idx + (row[base + idx] <= r2).astype(idx.dtype)
+    return idx + (flat[base + idx] <= r2).astype(idx.dtype)
 
 
 def jitter_filter(
@@ -106,7 +133,7 @@ def jitter_filter(
 
     `path`: `"dense"` (a gather over every tap), `"spans"` (row spans for the fully covered pixels,
     where every point hits, and counts only on the boundary taps: `spans.py`), or `"auto"`: spans
-    from `JITTER_SPANS_MIN_RADIUS` on. The same counts either way (the numbers agree to rounding).
+    from `spans_min_radius(samples)` on. The same counts either way (the numbers agree to rounding).
     """
     if path not in PATHS:
         raise ValueError(f"{path=} is not one of {PATHS}")
@@ -114,7 +141,7 @@ def jitter_filter(
     r = lax.stop_gradient(radius)
     small = r <= 0.5
     inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
-    spans = path == "spans" or (path == "auto" and max_radius >= JITTER_SPANS_MIN_RADIUS)
+    spans = path == "spans" or (path == "auto" and max_radius >= spans_min_radius(samples))
     pad, _, _ = spans_layout(*r.shape, max_radius)
     # spans: every offset the boundary taps reach (a square of half-width `pad`); dense: the window
     offsets = _square(pad) if spans else tap_offsets(max_radius)
@@ -123,23 +150,21 @@ def jitter_filter(
     with jax.ensure_compile_time_eval() if is_concrete(key) else contextlib.nullcontext():
         k_points, k_choice = jax.random.split(key)
         table = hit_thresholds(jitter_points(k_points, PATTERNS, samples, dtype), offsets)
-        m = table.shape[1] // PATTERNS
         choice = jax.random.randint(k_choice, r.shape, 0, PATTERNS, jnp.int32)
     if spans:
         # the square's offsets outside the window are never hit, as in the dense gather
         outside = np.ones((2 * pad + 1,) * 2, bool)
         reach = tap_offsets(max_radius) + pad
         outside[reach[:, 0], reach[:, 1]] = False
-        table = jnp.where(jnp.asarray(outside.reshape(-1, 1)), jnp.inf, table)
-        return _jitter_spans(image, r, max_radius, inv_area, table.reshape(-1), choice, m)
-    base = choice * m  # each output pixel's pattern's row
+        table = jnp.where(jnp.asarray(outside.reshape(-1, 1, 1)), jnp.inf, table)
+        return _jitter_spans(image, r, max_radius, inv_area, table, choice)
     is_centre = np.all(offsets == 0, axis=-1).astype(np.float64)
 
     def weight(tap, src, out):
         row, centre = tap
         r_s, inv_s = src
-        (b,) = out
-        hits = count_below(row, b, r_s * r_s, m)
+        (pattern,) = out
+        hits = count_below(row, pattern, r_s * r_s)
         return jnp.where(r_s <= 0.5, centre, hits.astype(dtype) * inv_s)
 
     return gather_taps(
@@ -148,7 +173,7 @@ def jitter_filter(
         weight,
         per_tap=(table, jnp.asarray(is_centre, dtype)),
         source=(r, inv_area),
-        output=(base,),
+        output=(choice,),
     )
 
 
@@ -158,10 +183,10 @@ def _square(half: int) -> np.ndarray:
     return np.stack(np.meshgrid(o, o, indexing="ij"), -1).reshape(-1, 2).astype(np.int32)
 
 
-def _jitter_spans(image, r, max_radius, inv_area, table, choice, m):
+def _jitter_spans(image, r, max_radius, inv_area, table, choice):
     """The jittered scatter by row spans: a fully covered pixel gets all `n` hits (`1 / (pi r^2)`,
     the spans' weight); the boundary taps count the hits of their output pixel's pattern.
-    `table`: `hit_thresholds` over `_square(pad)`, flattened."""
+    `table`: `hit_thresholds` over `_square(pad)`."""
     h, w, _ = image.shape
     pad, hp, wp = spans_layout(h, w, max_radius)
     choice_flat = jnp.zeros((hp, wp), jnp.int32).at[pad : pad + h, pad : pad + w].set(choice)
@@ -172,7 +197,8 @@ def _jitter_spans(image, r, max_radius, inv_area, table, choice, m):
     def partial(target, dy, dx):
         pattern = jnp.take(choice_flat, target, mode="clip")  # a dropped duplicate: any pattern
         tap = (dy + pad).astype(jnp.int32) * side + (dx + pad).astype(jnp.int32)
-        hits = count_below(table, (tap * PATTERNS + pattern) * m, r2[None], m)  # (taps, H, W)
+        rows = table.reshape(-1, table.shape[-1])  # (tap, pattern) pairs
+        hits = count_below(rows, tap * PATTERNS + pattern, r2[None])  # (taps, H, W)
         return hits.astype(r.dtype) * inv_area[None]
 
     return spans_filter(image, r, max_radius=max_radius, partial=partial)
