@@ -263,7 +263,7 @@ def auto_vs_soft(R: float, scenes, size: int, repeat: int) -> list[dict]:
                 )
             )
             ta.append(timeit.timeit(lambda f=auto_c: jax.block_until_ready(f(image)), number=1))
-            te.append(timeit.timeit(lambda: jax.block_until_ready(empty(image)), number=1))
+            te.append(timeit.timeit(lambda f=empty: jax.block_until_ready(f(image)), number=1))
         t_inspect = timeit.repeat(
             lambda r=radius: choose_method(r, max_radius=R), number=1, repeat=5
         )
