@@ -21,6 +21,7 @@ from jaxdof._filters.layered import (
     level_radii,
     sharp_first_level,
 )
+from jaxdof._filters.shape import unit_halfplanes
 from jaxdof._filters.tabulated import radius_levels, tabulated_filter
 
 
@@ -79,15 +80,23 @@ def test_supersample_kernel_converges_like_one_over_n():
     assert e64 < e8 / 4, (e8, e64)
 
 
-def _supersample_reference(image, radius, n, half):
-    """The n x n count, scattered source by source in numpy (no symmetry, no row ranges)."""
+def _supersample_reference(image, radius, n, half, blades=None, rotation=0.0):
+    """The n x n count, scattered source by source in numpy (no symmetry, no row ranges); with
+    `blades`, a sub-sample is inside when it is inside every edge's half-plane."""
     h, w, _ = image.shape
     sub = (np.arange(n) + 0.5) / n - 0.5
     o = np.arange(-half, half + 1)
-    # (offset y, offset x, sub y, sub x): squared distance of every sub-sample of the window
-    d2 = (o[:, None, None, None] + sub[None, None, :, None]) ** 2 + (
-        o[None, :, None, None] + sub[None, None, None, :]
-    ) ** 2
+    # (offset y, offset x, sub y, sub x): coordinates of every sub-sample of the window
+    ys = (o[:, None, None, None] + sub[None, None, :, None]) + 0 * o[None, :, None, None]
+    xs = (o[None, :, None, None] + sub[None, None, None, :]) + 0 * o[:, None, None, None]
+    if blades is None:
+        d2 = ys**2 + xs**2  # inside: d2 <= r^2
+    else:  # the polygon scaled by r: max_k (n_k . (x, y)) / apothem <= r, squared to match
+        normals, apothem = unit_halfplanes(blades, rotation)
+        proj = (
+            normals[:, 0, None, None, None, None] * xs + normals[:, 1, None, None, None, None] * ys
+        )
+        d2 = np.maximum(proj.max(0), 0) ** 2 / apothem**2
     out = np.zeros_like(image)
     for y in range(h):
         for x in range(w):
@@ -113,6 +122,36 @@ def test_supersample_equals_a_brute_force_count(n):
     out = coc_filter(image, radius, method="supersample", samples=n, max_radius=3.4)
     ref = _supersample_reference(image, radius, n, window_half_width(3.4))
     assert _err(out, ref) < 1e-14
+
+
+@pytest.mark.parametrize("blades, rotation", [(5, 0.3), (6, 1.1)])
+def test_supersample_polygon_equals_a_brute_force_count(blades, rotation):
+    """With blades every tap is counted by row ranges on the polygon's rows: the plain count."""
+    image, radius = _scene(9, 11, 3.4, seed=5)
+    radius[::4] = 0.4
+    knobs = {"samples": 3, "blades": blades, "rotation": rotation}
+    out = coc_filter(image, radius, method="supersample", max_radius=3.4, **knobs)
+    ref = _supersample_reference(image, radius, 3, window_half_width(3.4), blades, rotation)
+    assert _err(out, ref) < 1e-14
+
+
+@pytest.mark.parametrize("rmax", [3.0, 8.0, 13.0, 30.0])
+def test_supersample_spans_equal_the_dense_gather(rmax):
+    """Row spans give every fully covered pixel all `n^2` sub-samples and count only the boundary
+    taps: the dense gather's counts (itself the brute-force count above), at any window."""
+    from jaxdof._filters.supersample import supersample_filter
+
+    image, radius = _scene(23, 29, rmax, seed=6)
+    radius[::5, ::4] = 0.3  # sharp sources among the blurred ones
+    radius[1::6, 2::5] = 2.0  # sub-sample centres exactly on the circle for even n
+    image, radius = jnp.asarray(image), jnp.asarray(radius)
+    for n in (1, 2, 3, 4):
+        f = lambda path, n=n: supersample_filter(  # noqa: E731
+            image, radius, max_radius=rmax, samples=n, path=path
+        )
+        assert _err(f("spans"), f("dense")) < 1e-13
+    with pytest.raises(ValueError, match="path='rows' is not one of"):
+        f("rows")
 
 
 def test_supersample_with_one_sample_is_hard():

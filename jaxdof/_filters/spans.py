@@ -118,6 +118,7 @@ def spans_filter(
     *,
     max_radius: float,
     partial: Callable[[Array, Array, Array], Array] | None = None,
+    interior: Float[Array, "h w"] | None = None,
 ) -> Float[Array, "h w c"]:
     """The soft filter's exact scatter by row spans and boundary taps (module docstring).
 
@@ -128,8 +129,9 @@ def spans_filter(
     fully covered), given for the `T` taps of a step at once: each source's output pixel as an
     index into the flat padded buffers (layout of `spans_layout`; out of range for a dropped
     duplicate) and the offset `(dy, dx)` from source to output pixel. It must be 0 for radii
-    `<= 1/2`. Fully covered pixels keep the weight `1 / (pi r^2)`. `jitter` uses this: its
-    estimate is exact on fully covered pixels.
+    `<= 1/2`. `jitter` and `supersample` use this: their estimates are exact on fully covered
+    pixels. `interior` (H, W): the weight of a fully covered pixel of each source, `1 / (pi r^2)`
+    if not given (`supersample`: `n^2 / N(r)`, all sub-samples over its normaliser).
     """
     h, w, c = image.shape
     dtype = image.dtype
@@ -140,7 +142,9 @@ def spans_filter(
 
     big = radius > 0.5
     rs = jnp.where(big, radius, 1)
-    v = image * jnp.where(big, 1 / (math.pi * rs * rs), 0)[..., None]
+    if interior is None:
+        interior = 1 / (math.pi * rs * rs)
+    v = image * jnp.where(big, interior, 0)[..., None]
     sharp = jnp.where(big[..., None], jnp.zeros((), dtype), image)  # the identity part
     # The integer geometry depends on r only through comparisons: no gradient flows through it.
     rr = lax.stop_gradient(rs * rs)
