@@ -23,12 +23,16 @@ Method. float32 (x64 off), 3-channel textured images, radii from a thin lens and
 
 The f-number is set per scene so that the largest radius is `R` in {2, 8, 24} px, and the window
 is `max_radius=R`. Errors are against `method="soft"` on the same inputs, in units of the image
-range (1). Timings: `jax.jit`, one call to compile (reported apart), then the median of repeated calls
-(`block_until_ready`), divided by the megapixels; forward+grad is `jax.value_and_grad` of a squared
+range (1). Timings: `jax.jit`, one call to compile (reported apart), then the per-call time
+(`block_until_ready`) as the median of several samples, each a batch of back-to-back calls lasting
+about `SAMPLE_S` (a fit or a batch of renders calls the filter back to back; single sub-millisecond
+calls mostly time the runtime waking up), with every row of one radius sampled round by round so
+that the shared machine's load shifts all of them alike; divided by the megapixels; forward+grad is `jax.value_and_grad` of a squared
 error with respect to the image and the radius map (`auto` with respect to the image only: its radius
 map must be concrete, so it is closed over; for the `auto` ratio `soft` is timed both that way and
 with the radius map as an argument, as in `render` and `fit_lens`, in the same run, on the study's
-frame and on a 256 x 256 frame where per-call overhead matters less). Lens fit: the f-number (log coordinate; it sets the blur scale, the focus distance is
+frame and on larger frames where per-call overhead matters less, beside an empty call, a jitted
+`image + 1`, the floor). Lens fit: the f-number (log coordinate; it sets the blur scale, the focus distance is
 known) by optimistix Levenberg-Marquardt through `jaxdof.render(..., method=...)`, from a start 15 %
 off, on targets rendered by `soft` with the true lens, at R = 8; the error is its relative error.
 Methods with no gradient in the radius (`DIFFERENTIABLE_IN_RADIUS`) are not fitted. `jaxdof.fit_lens`
@@ -118,13 +122,33 @@ def lens_for(depth: np.ndarray, radius: float) -> ThinLens:
     return ThinLens(F, r1 / radius, D_F, PITCH)
 
 
-def median_time(fn, *args, repeat: int) -> tuple[float, float]:
-    """(compile+first call, median of `repeat` further calls) in seconds."""
+#: Each timing sample is a batch of back-to-back calls lasting about this long (per-call time =
+#: batch time / calls): sub-millisecond calls are otherwise dominated by timer and wake-up noise.
+SAMPLE_S = 5e-3
+
+
+def compile_and_batch(fn, *args) -> tuple[float, int]:
+    """(compile+first call in seconds, calls per timing sample)."""
     t0 = time.perf_counter()
     jax.block_until_ready(fn(*args))
     first = time.perf_counter() - t0
-    times = timeit.repeat(lambda: jax.block_until_ready(fn(*args)), number=1, repeat=repeat)
-    return first, float(np.median(times))
+    warm = timeit.timeit(lambda: jax.block_until_ready(fn(*args)), number=1)
+    return first, max(1, min(64, round(SAMPLE_S / max(warm, 1e-9))))
+
+
+def per_call(fn, args, calls: int) -> float:
+    """One timing sample: seconds per call over a batch of `calls` back-to-back calls."""
+    return timeit.timeit(lambda: jax.block_until_ready(fn(*args)), number=calls) / calls
+
+
+def interleaved_medians(timers, repeat: int) -> list[float]:
+    """Median per-call time of each `(fn, args, calls)`, sampled in `repeat` rounds that visit
+    every timer once (so a change of the machine's load hits all of them alike)."""
+    samples = [[] for _ in timers]
+    for _ in range(repeat):
+        for i, (fn, args, calls) in enumerate(timers):
+            samples[i].append(per_call(fn, args, calls))
+    return [float(np.median(v)) for v in samples]
 
 
 def fit_error(method, knobs, image, depth, lens, target, radius, steps=40):
@@ -158,6 +182,7 @@ def run(
     auto_rows = []
     t_start = time.perf_counter()
     for R in radii:
+        timers = []  # (fwd, args, calls), (grad, gargs, calls) of every row of this R, in order
         setup = {}
         for scene in scenes:
             depth = depth_map(scene, size)
@@ -196,8 +221,9 @@ def run(
                 out = np.asarray(fwd(*args))
                 err = np.abs(out.astype(np.float64) - ref)
                 rmse = float(np.sqrt(np.mean(err**2)))
-                compile_f, t_f = median_time(fwd, *args, repeat=repeat)
-                compile_g, t_g = median_time(grad, *gargs, repeat=repeat)
+                compile_f, calls_f = compile_and_batch(fwd, *args)
+                compile_g, calls_g = compile_and_batch(grad, *gargs)
+                timers += [(fwd, args, calls_f), (grad, gargs, calls_g)]
                 fit = None
                 fitted = DIFFERENTIABLE_IN_RADIUS[method] or method == "layered"
                 if (
@@ -214,8 +240,8 @@ def run(
                     max_err=float(err.max()),
                     rmse=rmse,
                     psnr=float(20 * np.log10(1 / rmse)) if rmse > 0 else math.inf,
-                    fwd_ms_per_mp=1e3 * t_f / mp,
-                    grad_ms_per_mp=1e3 * t_g / mp,
+                    fwd_ms_per_mp=math.nan,  # timed below, interleaved with the other rows
+                    grad_ms_per_mp=math.nan,
                     compile_s=compile_f + compile_g,
                     fit_err=fit,
                     choice=choose_method(radius, max_radius=R) if method == "auto" else "",
@@ -223,11 +249,18 @@ def run(
                 rows.append(row)
                 print(
                     f"{scene:7s} R={R:4.0f} {method:11s} {label:7s} max={row['max_err']:.2e} "
-                    f"rmse={rmse:.2e} fwd={row['fwd_ms_per_mp']:9.1f} ms/MP grad={row['grad_ms_per_mp']:9.1f} "
-                    f"fit={'' if fit is None else f'{fit:.1e}'} {row['choice']} "
+                    f"rmse={rmse:.2e} fit={'' if fit is None else f'{fit:.1e}'} {row['choice']} "
                     f"[{time.perf_counter() - t_start:.0f}s]",
                     flush=True,
                 )
+        timed = interleaved_medians(timers, repeat)
+        for row, t_f, t_g in zip(rows[-len(timers) // 2 :], timed[::2], timed[1::2]):
+            row["fwd_ms_per_mp"], row["grad_ms_per_mp"] = 1e3 * t_f / mp, 1e3 * t_g / mp
+            print(
+                f"{row['scene']:7s} R={R:4.0f} {row['method']:11s} {row['knob']:7s} "
+                f"fwd={row['fwd_ms_per_mp']:9.1f} ms/MP grad={row['grad_ms_per_mp']:9.1f}",
+                flush=True,
+            )
         for sz in dict.fromkeys((size, *auto_sizes)):
             auto_rows += auto_vs_soft(R, scenes, sz, repeat)
     write(rows, auto_rows, quick, size, radii, repeat, time.perf_counter() - t_start, tag)
@@ -251,19 +284,16 @@ def auto_vs_soft(R: float, scenes, size: int, repeat: int) -> list[dict]:
         empty = jax.jit(lambda img: img + 1)
         radius_t = jnp.asarray(radius)
         ref = np.asarray(soft_c(image), np.float64)
-        jax.block_until_ready(auto_c(image))
-        jax.block_until_ready(soft_t(image, radius_t))
-        jax.block_until_ready(empty(image))
-        ts, tt, ta, te = [], [], [], []
-        for _ in range(3 * repeat):
-            ts.append(timeit.timeit(lambda f=soft_c: jax.block_until_ready(f(image)), number=1))
-            tt.append(
-                timeit.timeit(
-                    lambda f=soft_t, r=radius_t: jax.block_until_ready(f(image, r)), number=1
-                )
+        calls = [
+            (f, a, compile_and_batch(f, *a)[1])
+            for f, a in (
+                (soft_c, (image,)),
+                (soft_t, (image, radius_t)),
+                (auto_c, (image,)),
+                (empty, (image,)),
             )
-            ta.append(timeit.timeit(lambda f=auto_c: jax.block_until_ready(f(image)), number=1))
-            te.append(timeit.timeit(lambda f=empty: jax.block_until_ready(f(image)), number=1))
+        ]
+        ts, tt, ta, te = interleaved_medians(calls, 3 * repeat)
         t_inspect = timeit.repeat(
             lambda r=radius: choose_method(r, max_radius=R), number=1, repeat=5
         )
@@ -274,10 +304,10 @@ def auto_vs_soft(R: float, scenes, size: int, repeat: int) -> list[dict]:
                 size=size,
                 levels=int(np.unique(np.where(radius <= 0.5, 0, radius)).size),
                 choice=choose_method(radius, max_radius=R),
-                soft_ms=1e3 * np.median(ts),
-                soft_traced_ms=1e3 * np.median(tt),
-                auto_ms=1e3 * np.median(ta),
-                empty_ms=1e3 * np.median(te),
+                soft_ms=1e3 * ts,
+                soft_traced_ms=1e3 * tt,
+                auto_ms=1e3 * ta,
+                empty_ms=1e3 * te,
                 inspect_ms=1e3 * float(np.median(t_inspect)),
                 max_err=float(np.abs(np.asarray(auto_c(image), np.float64) - ref).max()),
             )
@@ -313,7 +343,9 @@ def write(rows, auto_rows, quick, size, radii, repeat, elapsed, tag=""):
         "## Conditions",
         "",
         f"- images {size} x {size} x 3, float32; max radius {', '.join(f'{r:g}' for r in radii)} px; "
-        f"medians of {repeat} timed calls after one compiling call; total run {elapsed / 60:.1f} min",
+        f"per-call times: medians of {repeat} samples (each a batch of back-to-back calls of about "
+        f"{1e3 * SAMPLE_S:g} ms), all rows of one R timed interleaved, round by round; compile "
+        f"apart; total run {elapsed / 60:.1f} min",
         f"- jax {jax.__version__}, jaxdof {jaxdof.__version__}, Python {platform.python_version()}, "
         f"{platform.machine()} CPU, {os.cpu_count()} cores visible, backend {jax.default_backend()} "
         f"({device.device_kind})",
