@@ -414,8 +414,9 @@ def write(rows, auto_rows, quick, size, radii, repeat, elapsed, tag=""):
         "  layers for a few radii in a large window, else the tabulated gather; the soft filter's numbers).",
         "- Previews where accuracy does not matter: `hard` is the cheapest; `aperture` with few samples",
         "  is independent of the radius in cost but blotchy for large circles.",
-        "- `supersample`/`jitter` exist to reproduce the 2006 paper: with n >= 4 they cost more than",
-        "  `soft`, which has no error, in the panels measured here.",
+        "- `supersample`/`jitter` exist to reproduce the 2006 paper and cannot fit a lens: at small n",
+        "  they can cost less than `soft` but carry the coverage error in the tables; at n = 8 see the",
+        "  goal line above for how supersampling compares with `soft`, which has no error.",
     ]
     (RESULTS / f"tradeoff{suffix}.md").write_text("\n".join(lines) + "\n")
     plot(rows, RESULTS / f"tradeoff{suffix}.png", radii)
