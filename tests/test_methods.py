@@ -113,7 +113,7 @@ def _supersample_reference(image, radius, n, half, blades=None, rotation=0.0):
     return out
 
 
-@pytest.mark.parametrize("n", [1, 3, 4])
+@pytest.mark.parametrize("n", [1, 3, 4, 17])  # 17: the sub-rows in a loop, not written out
 def test_supersample_equals_a_brute_force_count(n):
     """The per-class count (mirrored taps, row ranges) is the plain count of sub-pixel centres."""
     image, radius = _scene(9, 11, 3.4)
@@ -124,14 +124,14 @@ def test_supersample_equals_a_brute_force_count(n):
     assert _err(out, ref) < 1e-14
 
 
-@pytest.mark.parametrize("blades, rotation", [(5, 0.3), (6, 1.1)])
-def test_supersample_polygon_equals_a_brute_force_count(blades, rotation):
+@pytest.mark.parametrize("blades, rotation, n", [(5, 0.3, 3), (6, 1.1, 17)])
+def test_supersample_polygon_equals_a_brute_force_count(blades, rotation, n):
     """With blades every tap is counted by row ranges on the polygon's rows: the plain count."""
     image, radius = _scene(9, 11, 3.4, seed=5)
     radius[::4] = 0.4
-    knobs = {"samples": 3, "blades": blades, "rotation": rotation}
+    knobs = {"samples": n, "blades": blades, "rotation": rotation}
     out = coc_filter(image, radius, method="supersample", max_radius=3.4, **knobs)
-    ref = _supersample_reference(image, radius, 3, window_half_width(3.4), blades, rotation)
+    ref = _supersample_reference(image, radius, n, window_half_width(3.4), blades, rotation)
     assert _err(out, ref) < 1e-14
 
 
@@ -145,7 +145,7 @@ def test_supersample_spans_equal_the_dense_gather(rmax):
     radius[::5, ::4] = 0.3  # sharp sources among the blurred ones
     radius[1::6, 2::5] = 2.0  # sub-sample centres exactly on the circle for even n
     image, radius = jnp.asarray(image), jnp.asarray(radius)
-    for n in (1, 2, 3, 4):
+    for n in (1, 2, 3, 4, 17):  # 17: the sub-rows in a loop
         f = lambda path, n=n: supersample_filter(  # noqa: E731
             image, radius, max_radius=rmax, samples=n, path=path
         )

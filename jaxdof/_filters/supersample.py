@@ -30,8 +30,6 @@ everywhere): `DIFFERENTIABLE_IN_RADIUS["supersample"]` is `False`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -65,29 +63,36 @@ def _column_range(xl: Array, xr: Array, n: int) -> tuple[Array, Array]:
     return lo, hi
 
 
-def _count_rows(
-    y: Array | Sequence[Array], c0: Array | None, r: Array, blades, rotation: float, n: int
-) -> Array:
-    """Sub-pixel centres inside the shape of radius `r` (H, W) on the `n` sub-rows at heights `y`
-    (`n` values, or `n` maps broadcast against `r`), in the global sub-columns `c0 .. c0 + n - 1` of one pixel (`c0=None`: in any column).
+#: Up to this many sub-rows per pixel a count's rows are written out (one fused elementwise pass);
+#: beyond, a `fori_loop` over them keeps the program small (n = 64 written out compiled ~10x slower).
+UNROLL_ROWS = 16
+
+
+def _count_rows(y0: Array, c0: Array | None, r: Array, blades, rotation: float, n: int) -> Array:
+    """Sub-pixel centres inside the shape of radius `r` on the `n` sub-rows of the pixel row at
+    integer height `y0` (heights `y0 + (k + 1/2)/n - 1/2`), in the global sub-columns
+    `c0 .. c0 + n - 1` of one pixel (`c0=None`: in any column). `y0`, `c0` and `r` broadcast.
 
     The sub-rows are summed one at a time, so that XLA fuses the count into one elementwise pass
     (summing an `(n, H, W)` array instead was 3.5-5x slower at 256^2, R = 8, CPU, one run).
     """
-    cnt = jnp.zeros_like(r)
-    for k in range(n):
-        xl, xr = row_extent(y[k], r, blades, rotation)
+    sub = (np.arange(n) + 0.5) / n - 0.5  # float64; y0 + sub is exact for the tie tests' radii
+
+    def row(acc, s):
+        xl, xr = row_extent(y0 + s, r, blades, rotation)
         lo, hi = _column_range(xl, xr, n)
         if c0 is not None:
             lo, hi = jnp.maximum(lo, c0), jnp.minimum(hi, c0 + n - 1)
-        cnt = cnt + jnp.maximum(hi - lo + 1, 0)
-    return cnt
+        return acc + jnp.maximum(hi - lo + 1, 0)
 
-
-def _row_heights(first: int, count: int, n: int) -> np.ndarray:
-    """Heights `(m + 1/2)/n - 1/2` of global sub-rows `m = first .. first + count - 1` (float64)."""
-    m = np.arange(first, first + count, dtype=np.float64)
-    return (m + 0.5) / n - 0.5
+    shapes = [jnp.shape(y0), r.shape] + ([] if c0 is None else [jnp.shape(c0)])
+    cnt = jnp.zeros(jnp.broadcast_shapes(*shapes), r.dtype)
+    if n <= UNROLL_ROWS:
+        for s in sub:
+            cnt = row(cnt, jnp.asarray(s, r.dtype))
+        return cnt
+    heights = jnp.asarray(sub, r.dtype)
+    return lax.fori_loop(0, n, lambda k, acc: row(acc, heights[k]), cnt)
 
 
 def supersample_filter(
@@ -115,12 +120,12 @@ def supersample_filter(
     w = window_half_width(max_radius)
 
     # total count N(r) over the whole window, one pixel row (its n sub-rows) per scan step
-    ys_all = _row_heights(-w * n - n // 2 - n, (2 * w + 3) * n, n).reshape(-1, n)
+    rows = jnp.arange(-w - 1, w + 2, dtype=dtype)  # heights +-(w + 3/2) cover every disc
 
-    def add_row(total, y):
-        return total + _count_rows(y, None, r, blades, rotation, n), None
+    def add_row(total, y0):
+        return total + _count_rows(y0, None, r, blades, rotation, n), None
 
-    total, _ = lax.scan(add_row, jnp.zeros_like(r), jnp.asarray(ys_all, dtype))
+    total, _ = lax.scan(add_row, jnp.zeros_like(r), rows)
     small = r <= 0.5
     inv_total = jnp.where(small, 0, 1 / jnp.where(small, 1, total))
 
@@ -130,8 +135,8 @@ def supersample_filter(
         # the disc and the sub-pixel grid share the grid's 8 reflections
         return _mirrored(image, r, inv_total, offsets, n)
 
-    # per tap: its n sub-row heights, and the global sub-column range of its pixel
-    ys = np.stack([_row_heights(int(oy) * n, n, n) for oy, _ in offsets])
+    # per tap: its pixel row, and the global sub-column range of its pixel
+    row0 = offsets[:, 0].astype(np.float64)
     col0 = offsets[:, 1].astype(np.float64) * n
     is_centre = np.all(offsets == 0, axis=-1).astype(np.float64)
 
@@ -145,7 +150,7 @@ def supersample_filter(
         image,
         offsets,
         weight,
-        per_tap=(jnp.asarray(ys, dtype), jnp.asarray(col0, dtype), jnp.asarray(is_centre, dtype)),
+        per_tap=(jnp.asarray(row0, dtype), jnp.asarray(col0, dtype), jnp.asarray(is_centre, dtype)),
         source=(r, inv_total),
     )
 
@@ -157,12 +162,11 @@ def _mirrored(image, r, inv_total, offsets: np.ndarray, n: int) -> Array:
     of the pixel at `(oy, ox)` is that of `(|oy|, |ox|)` and of `(|ox|, |oy|)`. As in the soft
     filter, the weighted source is formed once per class and read at each mirrored offset.
     """
-    sub = (np.arange(n) + 0.5) / n - 0.5  # sub-row heights within a pixel, float64
 
     def source(geom, image, r, inv):
         _, bx, _, by, _, centre = geom
         oy, ox = by - 0.5, bx - 0.5  # the class's canonical offset, 0 <= oy <= ox
-        cnt = _count_rows(oy + jnp.asarray(sub, image.dtype), ox * n, r, None, 0.0, n)
+        cnt = _count_rows(oy, ox * n, r, None, 0.0, n)
         return image * jnp.where(r <= 0.5, centre, cnt * inv)[..., None]
 
     return mirrored_scatter(source, offsets, image.shape, image.dtype, (image, r, inv_total))
@@ -171,10 +175,9 @@ def _mirrored(image, r, inv_total, offsets: np.ndarray, n: int) -> Array:
 def _spans(image, r, max_radius: float, inv_total, n: int) -> Array:
     """The same scatter by row spans: a fully covered pixel holds all `n^2` sub-samples (weight
     `n^2 / N(r)`), the boundary taps count theirs."""
-    sub = (np.arange(n) + 0.5) / n - 0.5  # sub-row heights within a pixel, float64
 
     def partial(target, dy, dx):  # (taps, H, W) offsets from each source to its boundary pixels
-        cnt = _count_rows([dy + s for s in sub], dx * n, r[None], None, 0.0, n)
+        cnt = _count_rows(dy, dx * n, r[None], None, 0.0, n)
         return cnt * inv_total[None]
 
     return spans_filter(
