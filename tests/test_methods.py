@@ -1,5 +1,6 @@
 """The seeds' filter family behind `coc_filter(..., method=...)`: limits, energy, keys, knobs, gradients."""
 
+import functools
 import math
 
 import jax
@@ -135,25 +136,6 @@ def test_supersample_polygon_equals_a_brute_force_count(blades, rotation, n):
     assert _err(out, ref) < 1e-14
 
 
-@pytest.mark.parametrize("rmax", [3.0, 8.0, 13.0, 30.0])
-def test_supersample_spans_equal_the_dense_gather(rmax):
-    """Row spans give every fully covered pixel all `n^2` sub-samples and count only the boundary
-    taps: the dense gather's counts (itself the brute-force count above), at any window."""
-    from jaxdof._filters.supersample import supersample_filter
-
-    image, radius = _scene(23, 29, rmax, seed=6)
-    radius[::5, ::4] = 0.3  # sharp sources among the blurred ones
-    radius[1::6, 2::5] = 2.0  # sub-sample centres exactly on the circle for even n
-    image, radius = jnp.asarray(image), jnp.asarray(radius)
-    for n in (1, 2, 3, 4, 17):  # 17: the sub-rows in a loop
-        f = lambda path, n=n: supersample_filter(  # noqa: E731
-            image, radius, max_radius=rmax, samples=n, path=path
-        )
-        assert _err(f("spans"), f("dense")) < 1e-13
-    with pytest.raises(ValueError, match="path='rows' is not one of"):
-        f("rows")
-
-
 def test_supersample_with_one_sample_is_hard():
     image, radius = _scene()
     np.testing.assert_allclose(
@@ -230,17 +212,24 @@ def test_jitter_equals_its_definition(samples, path, rmax):
 
 
 @pytest.mark.parametrize("rmax", [3.0, 8.0, 13.0, 30.0])
-def test_jitter_spans_equal_the_dense_gather(rmax):
-    """Row spans give every fully covered pixel all `n` hits and count only the boundary taps: the
-    same counts as the dense gather's, so the same image to rounding, at any window."""
+@pytest.mark.parametrize(
+    "method, counts", [("jitter", (1, 5, 16)), ("supersample", (1, 2, 3, 4, 17))]
+)  # supersample 17: the sub-rows in a loop, not written out
+def test_spans_equal_the_dense_gather(method, counts, rmax):
+    """Row spans give every fully covered pixel all its points (jitter's `n` hits, supersample's
+    `n^2` sub-samples) and count only the boundary taps: the dense gather's counts, so the same
+    image to rounding, at any window."""
     from jaxdof._filters.jitter import jitter_filter
+    from jaxdof._filters.supersample import supersample_filter
 
+    filt = {"jitter": functools.partial(jitter_filter, key=KEY), "supersample": supersample_filter}
     image, radius = _scene(23, 29, rmax, seed=4)
     radius[::5, ::4] = 0.3  # sharp sources among the blurred ones
+    radius[1::6, 2::5] = 2.0  # sub-sample centres exactly on the circle for even n
     image, radius = jnp.asarray(image), jnp.asarray(radius)
-    for n in (1, 5, 16):
-        f = lambda path, n=n: jitter_filter(  # noqa: E731
-            image, radius, max_radius=rmax, samples=n, key=KEY, path=path
+    for n in counts:
+        f = lambda path, n=n: filt[method](  # noqa: E731
+            image, radius, max_radius=rmax, samples=n, path=path
         )
         assert _err(f("spans"), f("dense")) < 1e-13
     with pytest.raises(ValueError, match="path='rows' is not one of"):

@@ -24,7 +24,7 @@ before the image is seen, and the hit count of a source of radius `r` is their n
 look-ups. Same estimate, same expectation.
 
 **Row spans for large windows.** Every point of a fully covered pixel hits, so there the estimate
-is exact: `1 / (pi r^2)`, the soft filter's weight. From `spans_min_radius(n)` on, those pixels
+is exact: `1 / (pi r^2)`, the soft filter's weight. From `JITTER_SPANS_MIN_RADIUS` on, those pixels
 are added as row spans and only the partially covered ones count hits (`spans.py`, whose boundary
 taps take a per-output-pixel weight for this): `O(r)` work per source instead of `O(r^2)`.
 
@@ -47,24 +47,19 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 from .common import is_concrete, tap_offsets
-from .spans import PATHS, spans_filter, spans_layout
+from .spans import crossover_for, spans_filter, spans_layout, use_spans
 from .taps import gather_taps
 
 
 #: Latin hypercubes drawn per key; each output pixel uses one, picked at random.
 PATTERNS = 16
 #: `path="auto"` uses row spans from this window radius on, looked up by the number of points `n`
-#: (the first key `>= n`). The dense gather compares `n` thresholds at `~pi R^2` taps; the spans
+#: (`spans.crossover_for`: the first key `>= n`). The dense gather compares `n` thresholds at `~pi R^2` taps; the spans
 #: only at `O(R)` boundary taps, but pay scatters that do not shrink with `n`: the more points, the
 #: smaller the crossover. Measured on the 2-core CPU (smooth depth, RGB float32, 48^2 and 256^2,
 #: one run; spans / dense time): n = 4: 2.6-4.4 at R = 8, 1.2-1.6 at 16, 0.8-1.1 at 24; n = 16:
 #: 1.3-1.6 at 8, 0.7-1.1 at 12, 0.5-0.8 at 16; n = 64: 0.7-1.3 at 8, 0.5-0.8 at 12.
-JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, 64: 10.0}
-
-
-def spans_min_radius(samples: int) -> float:
-    """The window radius from which `path="auto"` takes row spans for `samples` points per pixel."""
-    return next((r for n, r in JITTER_SPANS_MIN_RADIUS.items() if samples <= n), 10.0)
+JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, math.inf: 10.0}
 
 
 #: `count_below` compares against every threshold of the pixel's pattern up to this many per
@@ -133,15 +128,13 @@ def jitter_filter(
 
     `path`: `"dense"` (a gather over every tap), `"spans"` (row spans for the fully covered pixels,
     where every point hits, and counts only on the boundary taps: `spans.py`), or `"auto"`: spans
-    from `spans_min_radius(samples)` on. The same counts either way (the numbers agree to rounding).
+    from `JITTER_SPANS_MIN_RADIUS` on. The same counts either way (the numbers agree to rounding).
     """
-    if path not in PATHS:
-        raise ValueError(f"{path=} is not one of {PATHS}")
+    spans = use_spans(path, max_radius, crossover_for(samples, JITTER_SPANS_MIN_RADIUS))
     dtype = image.dtype
     r = lax.stop_gradient(radius)
     small = r <= 0.5
     inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
-    spans = path == "spans" or (path == "auto" and max_radius >= spans_min_radius(samples))
     pad, _, _ = spans_layout(*r.shape, max_radius)
     # spans: every offset the boundary taps reach (a square of half-width `pad`); dense: the window
     offsets = _square(pad) if spans else tap_offsets(max_radius)
@@ -193,11 +186,11 @@ def _jitter_spans(image, r, max_radius, inv_area, table, choice):
     choice_flat = choice_flat.reshape(-1)
     r2 = r * r
     side = 2 * pad + 1
+    rows = table.reshape(-1, table.shape[-1])  # one row per (tap, pattern) pair
 
     def partial(target, dy, dx):
         pattern = jnp.take(choice_flat, target, mode="clip")  # a dropped duplicate: any pattern
         tap = (dy + pad).astype(jnp.int32) * side + (dx + pad).astype(jnp.int32)
-        rows = table.reshape(-1, table.shape[-1])  # (tap, pattern) pairs
         hits = count_below(rows, tap * PATTERNS + pattern, r2[None])  # (taps, H, W)
         return hits.astype(r.dtype) * inv_area[None]
 

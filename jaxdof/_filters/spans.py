@@ -91,6 +91,20 @@ SPANS_MIN_RADIUS = 12.0
 PATHS = ("auto", "dense", "spans")
 
 
+def use_spans(path: str, max_radius: float, crossover: float) -> bool:
+    """Whether a filter with a dense and a row-span path takes the spans: `path="spans"`, or
+    `"auto"` from its measured `crossover` radius on; `"dense"` never. Another `path` is an error."""
+    if path not in PATHS:
+        raise ValueError(f"{path=} is not one of {PATHS}")
+    return path == "spans" or (path == "auto" and max_radius >= crossover)
+
+
+def crossover_for(samples: int, table: dict[int | float, float]) -> float:
+    """The crossover radius for `samples` from a table `{samples: radius}` (keys ascending, the last
+    `inf`): the entry of the first key `>= samples`."""
+    return next(r for n, r in table.items() if samples <= n)
+
+
 def exact_soft_filter(
     image: Float[Array, "h w c"],
     radius: Float[Array, "h w"],
@@ -103,13 +117,9 @@ def exact_soft_filter(
     `path="auto"` picks spans when `max_radius >= SPANS_MIN_RADIUS`; `"dense"` and `"spans"` force
     one (the tests and benchmarks compare them). Both give the same numbers up to rounding.
     """
-    if path not in PATHS:
-        raise ValueError(f"{path=} is not one of {PATHS}")
-    if path == "auto":
-        path = "spans" if max_radius >= SPANS_MIN_RADIUS else "dense"
-    if path == "dense":
-        return soft_filter(image, radius, max_radius=max_radius)
-    return spans_filter(image, radius, max_radius=max_radius)
+    if use_spans(path, max_radius, SPANS_MIN_RADIUS):
+        return spans_filter(image, radius, max_radius=max_radius)
+    return soft_filter(image, radius, max_radius=max_radius)
 
 
 def spans_filter(

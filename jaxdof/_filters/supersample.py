@@ -20,7 +20,7 @@ taps share it, as in the soft filter). With `blades` the aperture is the inscrib
 `shape.py`), every tap counted.
 
 **Row spans for large discs.** A fully covered pixel holds all `n^2` sub-samples, so its weight is
-`n^2 / N(r)` whatever `n`: from `spans_min_radius(n)` on, those pixels are added as row spans
+`n^2 / N(r)` whatever `n`: from `SUPERSAMPLE_SPANS_MIN_RADIUS` on, those pixels are added as row spans
 (`spans.py`) and only the partially covered ones are counted, `O(r)` work per source instead of
 `O(r^2)`. Same counts, same numbers to rounding.
 
@@ -30,6 +30,8 @@ everywhere): `DIFFERENTIABLE_IN_RADIUS["supersample"]` is `False`.
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -38,22 +40,17 @@ from jaxtyping import Array, Float
 from .common import tap_offsets, window_half_width
 from .shape import row_extent
 from .soft import mirrored_scatter
-from .spans import PATHS, spans_filter
+from .spans import crossover_for, spans_filter, use_spans
 from .taps import gather_taps
 
 
-#: `path="auto"` takes row spans (disc only) from this window radius on, looked up by `n` (the
-#: first key `>= n`; beyond, 16): the dense gather counts `n` sub-rows per mirror class, the spans
+#: `path="auto"` takes row spans (disc only) from this window radius on, looked up by `n`
+#: (`spans.crossover_for`: the first key `>= n`): the dense gather counts `n` sub-rows per mirror class, the spans
 #: only at `O(R)` boundary taps but pay scatters. Measured on the 2-core CPU (smooth depth, RGB
 #: float32, one run; spans / dense time), 256^2: n <= 4: 2.0-2.2 at R = 24; n = 8: 1.5 at 16, 0.88
 #: at 24; n = 16: 1.1 at 16, 0.67 at 24. At 48^2 the spans win earlier (n = 2-4: 0.65-0.78 at R =
 #: 24; n = 8: 0.52 at 16): the thresholds follow the larger frame.
-SUPERSAMPLE_SPANS_MIN_RADIUS = {4: 32.0, 8: 24.0, 16: 20.0}
-
-
-def spans_min_radius(samples: int) -> float:
-    """The window radius from which `path="auto"` takes row spans for `samples^2` sub-samples."""
-    return next((r for n, r in SUPERSAMPLE_SPANS_MIN_RADIUS.items() if samples <= n), 16.0)
+SUPERSAMPLE_SPANS_MIN_RADIUS = {4: 32.0, 8: 24.0, 16: 20.0, math.inf: 16.0}
 
 
 def _column_range(xl: Array, xr: Array, n: int) -> tuple[Array, Array]:
@@ -109,10 +106,9 @@ def supersample_filter(
 
     `path` (the disc only; a polygon is always gathered): `"dense"` (a gather over every tap, one
     count per mirror class), `"spans"` (row spans for the fully covered pixels and counts on the
-    boundary taps: `spans.py`), or `"auto"`: spans from `spans_min_radius(samples)` on.
+    boundary taps: `spans.py`), or `"auto"`: spans from `SUPERSAMPLE_SPANS_MIN_RADIUS` on.
     """
-    if path not in PATHS:
-        raise ValueError(f"{path=} is not one of {PATHS}")
+    spans = use_spans(path, max_radius, crossover_for(samples, SUPERSAMPLE_SPANS_MIN_RADIUS))
     n = samples
     dtype = image.dtype
     r = lax.stop_gradient(radius)  # the counts are piecewise constant in r
@@ -130,7 +126,7 @@ def supersample_filter(
     inv_total = jnp.where(small, 0, 1 / jnp.where(small, 1, total))
 
     if blades is None:
-        if path == "spans" or (path == "auto" and max_radius >= spans_min_radius(n)):
+        if spans:
             return _spans(image, r, max_radius, inv_total, n)
         # the disc and the sub-pixel grid share the grid's 8 reflections
         return _mirrored(image, r, inv_total, offsets, n)
