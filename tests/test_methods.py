@@ -10,7 +10,7 @@ import pytest
 from jax.test_util import check_grads
 
 from jaxdof import ThinLens, coc_filter, render
-from jaxdof._filters import tabulated
+from jaxdof._filters import layered, tabulated
 from jaxdof._filters.auto import choose_method, max_layers
 from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
 from jaxdof._filters.common import tap_offsets, unique_with_index, window_half_width
@@ -366,6 +366,14 @@ def test_aperture_splat_has_the_discs_second_moment():
 # --- layered and auto ------------------------------------------------------------------------------
 
 
+@pytest.fixture(params=["fft", "direct"])
+def layered_path(request, monkeypatch):
+    """Force `layered`'s FFTs or its direct sum (normally chosen by cost from the window and L)."""
+    cost = 0.0 if request.param == "fft" else math.inf
+    monkeypatch.setattr(layered, "FFT_LEVEL_COST_IN_TAPS", cost)
+    return request.param
+
+
 def _levels_scene(levels, h=26, w=28, seed=3):
     rng = np.random.default_rng(seed)
     image = rng.uniform(size=(h, w, 3))
@@ -374,7 +382,7 @@ def _levels_scene(levels, h=26, w=28, seed=3):
 
 
 @pytest.mark.parametrize("jit", [False, True])
-def test_layered_equals_soft_with_exactly_L_levels(jit):
+def test_layered_equals_soft_with_exactly_L_levels(jit, layered_path):
     image, radius = _levels_scene([0.0, 1.7, 3.25, 6.0])
     soft = coc_filter(image, radius)
     f = lambda i, r: coc_filter(i, r, method="layered", layers=4, max_radius=6.0)
@@ -386,8 +394,9 @@ def test_layered_equals_soft_with_exactly_L_levels(jit):
     assert _err(coc_filter(image, radius, method="layered", layers=3), soft) > 1e-2
 
 
-def test_layered_scan_path_equals_soft():
+def test_layered_scan_path_equals_soft(monkeypatch):
     """More FFT levels than are unrolled: the scan over levels gives the same scatter."""
+    monkeypatch.setattr(layered, "FFT_LEVEL_COST_IN_TAPS", 0.0)  # the FFTs, whatever the cost
     radii = [0.0] + [1.0 + 0.5 * k for k in range(UNROLL_LEVELS + 2)]
     image, radius = _levels_scene(radii, 24, 23)
     out = coc_filter(image, radius, method="layered", layers=len(radii), max_radius=radii[-1])
@@ -414,6 +423,54 @@ def test_layered_level_radius_is_exact_in_float32(traced):
     assert _err(out, coc_filter(image, radius, max_radius=8.0)) < 2e-6
 
 
+def test_layered_direct_sum_equals_the_ffts():
+    """The two ways of summing the levels, on a binned map (more radii than layers, sharp pixels
+    among them): the same render, the same image gradient, the same radius derivative (through
+    the level means), traced and on a concrete map."""
+    rng = np.random.default_rng(13)
+    image = rng.uniform(size=(17, 19, 2))
+    radius = np.where(rng.uniform(size=(17, 19)) < 0.3, 0.4, rng.uniform(0.8, 3.5, (17, 19)))
+    direction = rng.normal(size=radius.shape)
+
+    def render_and_slope(path, concrete):
+        f = lambda i, r: layered.layered_filter(  # noqa: E731
+            jnp.asarray(i), r, max_radius=3.5, layers=4, path=path
+        )
+        if concrete:
+            return f(image, jnp.asarray(radius)), None
+        out, slope = jax.jvp(lambda r: f(image, r), (jnp.asarray(radius),), (direction,))
+        return out, slope
+
+    for concrete in (False, True):
+        (fft, s_fft), (direct, s_direct) = (
+            render_and_slope(p, concrete) for p in ("fft", "direct")
+        )
+        assert _err(direct, fft) < 1e-12
+        assert _err(direct, coc_filter(image, radius, max_radius=3.5)) > 1e-3  # binned, not soft
+        if s_fft is not None:
+            assert _err(s_direct, s_fft) < 1e-12 and _err(s_direct, 0 * s_direct) > 1e-3
+    f = jax.jit(
+        lambda i: layered.layered_filter(
+            i, jnp.asarray(radius), max_radius=3.5, layers=4, path="direct"
+        )
+    )
+    check_grads(f, (image,), order=1, modes=("fwd", "rev"), eps=1e-3, atol=1e-8, rtol=1e-8)
+    with pytest.raises(ValueError, match="path must be"):
+        layered.layered_filter(
+            jnp.asarray(image), jnp.asarray(radius), max_radius=3.5, layers=4, path="x"
+        )
+
+
+def test_layered_takes_the_direct_sum_for_small_windows():
+    """The cost rule: the direct sum for a 5 x 5 window at any L, the FFTs for R = 24 at any L and for
+    R = 8 with two levels (the measured crossovers in `FFT_LEVEL_COST_IN_TAPS`' comment)."""
+    for layers in (1, 2, 4, 8, 16, 32):
+        assert layered.direct_is_cheaper(2.0, layers, layers)
+        assert not layered.direct_is_cheaper(24.0, layers, layers)
+    assert not layered.direct_is_cheaper(8.0, 2, 2) and layered.direct_is_cheaper(4.0, 2, 2)
+    assert layered.direct_is_cheaper(6.0, 8, 8) and not layered.direct_is_cheaper(8.0, 8, 8)
+
+
 def test_fft_length_is_5_smooth_and_minimal():
     for n in range(1, 400):
         m = fft_length(n)
@@ -425,7 +482,7 @@ def test_fft_length_is_5_smooth_and_minimal():
         assert all(fft_length(j) == m for j in range(n, m + 1))  # nothing 5-smooth in between
 
 
-def test_layered_copies_the_sharp_level():
+def test_layered_copies_the_sharp_level(layered_path):
     """On a concrete map the level of radii <= 1/2 is copied, not convolved (one FFT fewer); the
     result is the all-FFT one (a traced map) and the soft filter's."""
     image, radius = _levels_scene([0.3, 2.5, 7.0])
@@ -439,7 +496,7 @@ def test_layered_copies_the_sharp_level():
     assert _err(f(image, np.full_like(radius, 0.3)), image) == 0.0
 
 
-def test_layered_concrete_map_binned_equals_traced():
+def test_layered_concrete_map_binned_equals_traced(layered_path):
     """More radii than layers: the concrete map's levels (numpy means, kernels built at compile
     time) are the traced map's (`assign_levels`), so the two renders agree to rounding."""
     rng = np.random.default_rng(11)
@@ -451,7 +508,7 @@ def test_layered_concrete_map_binned_equals_traced():
     assert _err(concrete, coc_filter(image, radius)) > 1e-3  # binned: not the soft filter
 
 
-def test_layered_float32_matches_soft():
+def test_layered_float32_matches_soft(layered_path):
     image, radius = _levels_scene([0.0, 2.5, 7.0])
     image, radius = image.astype(np.float32), radius.astype(np.float32)
     out = coc_filter(image, radius, method="layered", layers=3)
@@ -460,7 +517,7 @@ def test_layered_float32_matches_soft():
     assert _err(out, coc_filter(image, radius)) < 5e-6
 
 
-def test_layered_keeps_sharp_pixels_sharp_when_binning():
+def test_layered_keeps_sharp_pixels_sharp_when_binning(layered_path):
     """More radii than layers: the radii <= 1/2 keep a level of their own, so they stay the identity."""
     rng = np.random.default_rng(5)
     image = rng.uniform(size=(20, 22, 3))
@@ -614,7 +671,7 @@ def test_no_gradient_wrt_radius_is_zero_not_noise(method, knobs):
     assert np.array_equal(np.asarray(g(_GRAD_RADIUS)), np.zeros_like(_GRAD_RADIUS))
 
 
-def test_layered_radius_gradient_is_exact_for_depth_planes():
+def test_layered_radius_gradient_is_exact_for_depth_planes(layered_path):
     # every pixel of a plane shares a radius: the derivative along "move the whole plane" is exact
     image, radius = _levels_scene([0.0, 1.7, 3.2], 12, 13)
     mask = (radius == 3.2).astype(float)

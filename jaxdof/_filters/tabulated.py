@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from .common import half_width, pad_rows_cols, tap_offsets, unique_with_index
 from .soft import _offset_geometry, mirror_classes, mirrored_scatter, tap_weight
@@ -57,10 +57,14 @@ def tabulated_filter(
     image: Float[Array, "h w c"],
     *,
     max_radius: float,
-    levels: np.ndarray,
-    index: np.ndarray,
+    levels: Float[ArrayLike, " l"],
+    index: Int[ArrayLike, "h w"],
 ) -> Float[Array, "h w c"]:
-    """The soft scatter of `image` for the radius map `levels[index]` (concrete, clamped)."""
+    """The soft scatter of `image` for the radius map `levels[index]` (clamped to `max_radius`).
+
+    Concrete levels and index from `auto`; traced ones from `layered` (its direct path), whose
+    radius gradient flows through the levels.
+    """
     rho = jnp.asarray(levels, image.dtype)
     offsets = tap_offsets(max_radius)
     idx = jnp.asarray(index, jnp.int32)
