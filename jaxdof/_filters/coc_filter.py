@@ -202,8 +202,9 @@ def coc_filter(
           `"stratified"` (default), `"jittered"`, `"disc"`, `"weighted_disc"`; the random ones need
           `key`). Differentiable in `radius`.
         - `"layered"`: radii quantised to `layers` levels (default 8), each level blurred by one
-          soft disc kernel (FFT); equal to `"soft"` when the map has at most `layers` distinct radii.
-          Gradient in `radius` only through the level means.
+          soft disc kernel (by FFT for large windows, by a direct sum with the levels' weights
+          looked up for small ones); equal to `"soft"` when the map has at most `layers` distinct
+          radii. Gradient in `radius` only through the level means.
         - `"auto"`: what the concrete radius map needs (`choose_method`): FFT layers for a few
           distinct radii and a large window, the soft gather with its weights tabulated per
           distinct radius (`tabulated.py`) for a few hundred levels, the soft filter otherwise;
