@@ -57,7 +57,7 @@ def assign_levels(
     Exact levels when the (in-focus-merged) map has at most `layers` distinct values, else equal
     bins over its range. The level radius is the mean of its pixels' radii (differentiable); empty
     levels get radius 0. `assignment`: the index map already computed in numpy by
-    `assign_numpy` from a concrete map (then no sort enters the compiled graph).
+    `assign_numpy` from a concrete map (then no search for the levels enters the compiled graph).
     """
     r = jnp.where(radius <= 0.5, 0, radius)  # all of these are the identity: one level
     if assignment is not None:
@@ -174,7 +174,10 @@ def layered_filter(
     static_levels: np.ndarray | None = None,
     path: str = "auto",
 ) -> Float[Array, "h w c"]:
-    """Sum over `layers` radius levels of (masked image) * (soft disc kernel), by FFT.
+    """Sum over `layers` radius levels of (masked image) * (soft disc kernel).
+
+    By FFT or by the direct sum, whichever `direct_is_cheaper` says (`path="fft"` / `"direct"`
+    forces one; the result is the same to rounding).
 
     `sharp_level=True` (known from a concrete map, see `sharp_first_level`): level 0 holds only
     radii `<= 1/2`, whose kernel is the identity, so its pixels are copied instead of convolved:
