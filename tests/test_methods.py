@@ -423,6 +423,21 @@ def test_layered_level_radius_is_exact_in_float32(traced):
     assert _err(out, coc_filter(image, radius, max_radius=8.0)) < 2e-6
 
 
+def test_traced_level_search_equals_numpy():
+    """The traced assignment (`layers` min-reductions, no sort) gives `assign_numpy`'s index map:
+    exact levels, binned ones, all-sharp, one distinct value, fewer values than layers, L = 1."""
+    rng = np.random.default_rng(21)
+    values = np.asarray([0.0, 0.3, 0.5, 0.7, 1.0, 2.0, 3.5, 5.0, 8.0, 9.25, 20.0])
+    search = {n: jax.jit(lambda r, n=n: assign_levels(r, n)[0]) for n in (1, 2, 3, 5, 9)}
+    for trial in range(60):
+        radius = rng.choice(rng.choice(values, rng.integers(1, 9)), (7, 9))
+        if trial % 3 == 0:  # a continuum: every pixel its own radius
+            radius = radius + rng.uniform(0, 2, radius.shape)
+        for layers, f in search.items():
+            idx = np.asarray(f(jnp.asarray(radius)))
+            assert np.array_equal(idx, assign_numpy(radius, layers)), (trial, layers)
+
+
 def test_layered_direct_sum_equals_the_ffts():
     """The two ways of summing the levels, on a binned map (more radii than layers, sharp pixels
     among them): the same render, the same image gradient, the same radius derivative (through
