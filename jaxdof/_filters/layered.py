@@ -186,11 +186,19 @@ def layered_filter(
     """
     if path not in ("auto", "fft", "direct"):
         raise ValueError(f"path must be 'auto', 'fft' or 'direct', got {path!r}")
+    first = int(sharp_level)  # the first level that needs a convolution
+    n_conv = layers - first
+    if static_levels is None:
+        idx, levels = assign_levels(radius, layers, assignment)
+    else:  # a concrete map: index and radii known in numpy (no radius gradient to keep)
+        idx, levels = jnp.asarray(assignment, jnp.int32), static_levels
+    if path == "direct" or (path == "auto" and direct_is_cheaper(max_radius, layers, n_conv)):
+        # the same sum, each level's disc weights looked up per tap (the soft gather's weights)
+        return tabulated_filter(image, max_radius=max_radius, levels=levels, index=idx)
+
     h, w, c = image.shape
     dtype = image.dtype
     half = window_half_width(max_radius)
-    first = int(sharp_level)  # the first level that needs a convolution
-    n_conv = layers - first
     # `W` zeros past the image suffice: a tap wrapping around either end lands in them. At least the
     # kernel's `2W + 1`, rounded up to a 5-smooth FFT length.
     hp, wp = (fft_length(max(n + half, 2 * half + 1)) for n in (h, w))
@@ -202,20 +210,11 @@ def layered_filter(
         kpad = kpad.at[:, : 2 * half + 1, : 2 * half + 1].set(kernels)
         return jnp.fft.rfft2(jnp.roll(kpad, (-half, -half), axis=(1, 2)))  # (L, hp, wp//2+1)
 
-    if path == "direct" or (path == "auto" and direct_is_cheaper(max_radius, layers, n_conv)):
-        if static_levels is None:
-            idx, levels = assign_levels(radius, layers, assignment)
-        else:
-            idx, levels = assignment, static_levels
-        # the same sum, each level's disc weights looked up per tap (the soft gather's weights)
-        return tabulated_filter(image, max_radius=max_radius, levels=levels, index=idx)
     if static_levels is None:
-        idx, levels = assign_levels(radius, layers, assignment)
         kf = kernel_spectra(levels)
-    else:  # a concrete map: the spectra are compile-time constants (no radius gradient to keep)
-        idx = jnp.asarray(assignment, jnp.int32)
+    else:  # the spectra are compile-time constants
         with jax.ensure_compile_time_eval():
-            kf = kernel_spectra(jnp.asarray(static_levels, dtype))
+            kf = kernel_spectra(jnp.asarray(levels, dtype))
     chw = jnp.moveaxis(image, -1, 0)  # FFTs over the last two axes run ~2x faster on CPU
 
     def add_level(acc, level, kf_l):
