@@ -499,7 +499,7 @@ def test_fft_length_is_5_smooth_and_minimal():
 
 def test_layered_copies_the_sharp_level(layered_path):
     """On a concrete map the level of radii <= 1/2 is copied, not convolved (one FFT fewer); the
-    result is the all-FFT one (a traced map) and the soft filter's."""
+    result is the traced map's (every level summed) and the soft filter's, on either path."""
     image, radius = _levels_scene([0.3, 2.5, 7.0])
     assert sharp_first_level(radius, assign_numpy(radius, 3))
     assert not sharp_first_level(radius, assign_numpy(radius, 1))  # one level mixes every radius
