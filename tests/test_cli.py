@@ -1,16 +1,17 @@
 """The `jaxdof` command line, run as a user runs it: in a subprocess, on small files.
 
 Each subprocess pays for importing JAX and compiling (seconds; a fit compiles for ~20 s of CPU),
-so the runs are few: `demo`, one `fit`, two `render`s, two real bad-input runs (the `jaxdof`
-script and `python -m jaxdof`), and one subprocess that feeds the whole table of bad inputs to
-`jaxdof._cli.main`, the function both entry points call and whose return value is their exit
-status. A traceback there fails the test (it would escape `main`).
+so the runs are few: `demo`, one `fit` (read by two tests), two `render`s, two real bad-input
+runs (the `jaxdof` script and `python -m jaxdof`), and one subprocess that feeds the whole table
+of bad inputs to `jaxdof._cli.main`, the function both entry points call and whose return value
+is their exit status. A traceback there fails the test (it would escape `main`).
 """
 
 import hashlib
 import json
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import types
@@ -20,7 +21,9 @@ import numpy as np
 import pytest
 
 from jaxdof import _io
-from jaxdof._cli import demo_scene, main
+from jaxdof._cli import main
+from jaxdof._cli.demo import demo_scene
+from jaxdof._cli.report import Progress
 
 
 H, W = 24, 32
@@ -161,12 +164,25 @@ def test_render_float_tiff_and_millimetre_png(files):
     (d / "out.npy").unlink()
 
 
-def test_fit_json_and_plot(files):
+@pytest.fixture(scope="module")
+def fit_run(files):
+    """One `jaxdof fit ... --json --plot fit.png` (it compiles for ~20 s of CPU): its completed
+    process and the figure's number of axes (the figure is removed again: later tests check that
+    nothing was left in the folder)."""
     d, hashes, _, _ = files
     start = ["--focal-length", "85mm", "--f-number", "4", "--focus", "5m", "--sensor-width", SENSOR]
     res = _run(
         ["fit", "sharp.png", "depth.npy", "target.npy", *start, "--json", "--plot", "fit.png"], d
     )
+    figure = d / "fit.png"
+    ndim = iio.imread(figure).ndim if figure.exists() else None
+    figure.unlink(missing_ok=True)
+    _unchanged(d, hashes)
+    return res, ndim
+
+
+def test_fit_json_and_plot(fit_run):
+    res, figure_ndim = fit_run
     assert res.returncode == 0, res.stderr
     obj = json.loads(res.stdout)  # exactly one JSON object on stdout
     assert obj["success"] is True and obj["steps"] > 0 and obj["loss"] >= 0
@@ -178,9 +194,80 @@ def test_fit_json_and_plot(files):
         assert obj[name] == pytest.approx(value, rel=1e-3), name
     assert len(obj["lenses"]) == 1 and obj["lenses"][0]["focus_distance"] == obj["focus_distance"]
     assert "loss" in res.stderr  # progress goes to stderr
-    assert iio.imread(d / "fit.png").ndim == 3
-    _unchanged(d, hashes)
-    (d / "fit.png").unlink()
+    assert figure_ndim == 3
+
+
+_STEP = re.compile(r"^\s*solve (\d+) start (\d+)\s+step\s+(\d+)\s+loss (\S+)$")
+
+
+def test_fit_progress_prints_each_step_once(fit_run):
+    """Each accepted step of each start once on stderr (optimistix's callback fires on every
+    trial step, and again for every start already done while the others run)."""
+    res, _ = fit_run
+    assert res.returncode == 0, res.stderr
+    lines = [line for line in res.stderr.splitlines() if "step" in line]
+    assert lines, res.stderr
+    assert len(lines) == len(set(lines)), "a step line is repeated"
+    steps = {}
+    for line in lines:
+        match = _STEP.match(line)
+        assert match, line
+        solve, start, step, _ = match.groups()
+        steps.setdefault((solve, start), []).append(int(step))
+    assert all(s == sorted(set(s)) for s in steps.values()), steps
+
+
+def _toy_solve(y0s, verbose):
+    """Rosenbrock from each of `y0s` at once (vmapped, as `fit_lens` solves its starts), with a
+    constant residual `1000 i` that makes start `i`'s loss about `0.5e6 i^2`: the loss says which
+    start a progress line is about. The steps do not see it (its Jacobian row is zero).
+    Returns each start's number of solver steps."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import optimistix as optx
+
+    def fn(y, c):
+        return jnp.stack([10 * (y[1] - y[0] ** 2), 1 - y[0], c])
+
+    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, verbose=verbose)
+
+    @eqx.filter_jit
+    def solve(y0s, cs):
+        def one(y0, c):
+            return optx.least_squares(fn, solver, y0, c, throw=False, max_steps=100)
+
+        return eqx.filter_vmap(one)(y0s, cs).stats["num_steps"]
+
+    cs = 1000.0 * jnp.arange(len(y0s), dtype=jnp.float64)
+    steps = solve(jnp.asarray(y0s, dtype=jnp.float64), cs)
+    jax.effects_barrier()  # every callback has run
+    return np.asarray(steps)
+
+
+def test_progress_attributes_each_step_to_its_start(capsys):
+    """`Progress` on a vmapped solve whose starts finish after different numbers of steps: every
+    line is about the start it names (its loss says so), once per accepted step, steps rising,
+    and a start done early reports its final step; a second solve is `solve 2`."""
+    y0s = [[-1.2, 1.0], [0.5, 0.5], [3.0, -2.0]]
+    progress = Progress()
+    steps = _toy_solve(y0s, progress)
+    assert len(set(steps.tolist())) == len(y0s)  # the case that repeated lines: starts done early
+    _toy_solve(y0s, progress)  # the same callable again: the next solve
+    lines = capsys.readouterr().err.splitlines()
+    assert len(lines) == len(set(lines)), "a step line is repeated"
+    seen = {}
+    for line in lines:
+        match = _STEP.match(line)
+        assert match, line
+        solve, start, step, loss = match.groups()
+        assert round(np.sqrt(2 * float(loss)) / 1000) == int(start), line
+        seen.setdefault((int(solve), int(start)), []).append(int(step))
+    assert sorted(seen) == [(k, i) for k in (1, 2) for i in range(len(y0s))]
+    for (_, i), s in seen.items():
+        assert s == sorted(set(s)), s
+        if steps[i] < steps.max():  # done early: its final state is reported once
+            assert s[-1] == steps[i], (i, s, steps)
 
 
 def test_fit_downsample_option(tmp_path):
@@ -212,7 +299,6 @@ def test_fit_several_targets_output(files, monkeypatch, capsys):
     import jax.numpy as jnp
 
     import jaxdof
-    from jaxdof import _fit
 
     d, hashes, _, _ = files
     lenses = jaxdof.ThinLens(
@@ -229,12 +315,13 @@ def test_fit_several_targets_output(files, monkeypatch, capsys):
         message="converged",
     )
     calls = []
-    monkeypatch.setattr(_fit, "fit_lens", lambda *a, **k: calls.append((a, k)) or fake)
+    monkeypatch.setattr(jaxdof, "fit_lens", lambda *a, **k: calls.append((a, k)) or fake)
     monkeypatch.chdir(d)
     start = ["--focal-length", "85mm", "--sensor-width", SENSOR, "--shared", "f_number"]
     assert main(["fit", "sharp.png", "depth.npy", "near.npy", "far.npy", *start, "--json"]) == 0
     (image, depth, targets, init), kwargs = calls[0]
     assert targets.shape == (2, H, W, 3) and kwargs["shared"] == ("f_number",)
+    assert kwargs["method"] == "soft"  # the default of --method
     obj = json.loads(capsys.readouterr().out)
     assert [x["focus_distance"] for x in obj["lenses"]] == [2.0, 4.5]
     assert [x["stderr"]["focus_distance"] for x in obj["lenses"]] == [0.02, 0.03]
@@ -294,7 +381,8 @@ BAD = [  # (argv, text the one line must contain)
     (["render", "sharp.png", "small.npy", "-o", "o.png", *LENS], "small.npy: depth is 23x32"),
     (["render", "sharp.png", "nan.npy", "-o", "o.png", *LENS], "nan.npy: depth contains NaN"),
     (["render", "sharp.png", "zero.npy", "-o", "o.png", *LENS], "zero.npy: depth must be positive"),
-    (["render", "sharp.png", "close.npy", "-o", "o.png", *LENS], "close.npy: nearest depth 0.05"),
+    # the library's checks of the values (jaxdof.ThinLens, render, fit_lens), as one line
+    (["render", "sharp.png", "close.npy", "-o", "o.png", *LENS], "depth must be beyond the focal"),
     (
         ["render", "sharp.png", "depth_mm.png", "-o", "o.png", *LENS],
         "depth_mm.png: integer depth needs --depth-scale",
@@ -311,7 +399,8 @@ BAD = [  # (argv, text the one line must contain)
     ),
     ([*R, *LENS[:4], "--focus", "3km"], "argument --focus: bad length '3km'"),
     ([*R, *LENS[:4], "--focus=-3m"], "argument --focus: bad length '-3m'"),
-    ([*R, *LENS[:4], "--focus", "5cm"], "--focus 0.05 m must exceed --focal-length 85mm"),
+    ([*R, *LENS[:4], "--focus", "5cm"], "focus_distance must exceed focal_length"),
+    ([*F, "--focus", "5cm"], "focus_distance must exceed focal_length"),
     ([*R, "--focal-length", "85", *LENS[2:]], "argument --focal-length: bare number '85'"),
     ([*R, *LENS[:2], "--f-number", "0", *LENS[4:]], "argument --f-number: '0' must be positive"),
     ([*R, *LENS[:2], "--f-number", "nan", *LENS[4:]], "argument --f-number"),
@@ -324,9 +413,10 @@ BAD = [  # (argv, text the one line must contain)
     ([*F[:3], "small3.npy", *F[4:]], "small3.npy: target has shape (24, 31, 3)"),
     ([*F[:3], "missing.npy", *F[4:]], "missing.npy: no such file"),
     ([*F, "--free", "focal_length", "f_number"], "--free focal_length f_number: one photo"),
-    ([*F, "--shared", "focal_length"], "--shared focal_length: only free fields"),
+    ([*F, "--shared", "focal_length"], "shared must be a subset of free"),
     ([*F, "--free", "aperture"], "argument --free: invalid choice"),
-    ([*F, "--max-steps", "0"], "--max-steps 0"),
+    ([*F, "--max-steps", "0"], "max_steps must be a positive integer, got 0"),
+    ([*F, "--method", "hard"], "cannot drive a fit"),
     ([*F, "--plot", "fit.jpg"], "--plot fit.jpg: the figure is written as PNG"),
     ([*F, "--plot", "target.npy"], "--plot target.npy: is also an input"),
     (["demo", "--out", "demo.jpg"], "--out demo.jpg"),

@@ -1,0 +1,333 @@
+"""The `jaxdof` argument parser: commands, options, and the option types (lengths, positives).
+
+A usage error is one line on stderr and exit status 2 (`Parser`). Option types check syntax and
+sign only; the physics of the values (a focus beyond the focal length, depths beyond it) is the
+library's to check, and `commands` reports its `ValueError` as the same kind of one-line error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+
+
+FIELDS = ("focal_length", "f_number", "focus_distance")
+_UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
+_LENGTH = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(mm|cm|m)?\s*$")
+
+
+def method_names() -> tuple[str, ...]:
+    """The names `--method` accepts: the library's string aliases of its filter methods.
+
+    The one place the CLI learns them (`render` and `fit_lens` take the alias as `method=`).
+    """
+    from .._filters.coc_filter import METHODS  # to become `METHOD_ALIASES` (method objects)
+
+    return tuple(METHODS)
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line on stderr (and exit status 2), not a usage block."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+# ----------------------------------------------------------------------------------------------
+# Option types
+
+
+def _length(text: str) -> tuple[float, str | None]:
+    """`text` as `(metres, unit or None)`; positive and finite."""
+    match = _LENGTH.match(text)
+    if match is None:
+        raise argparse.ArgumentTypeError(
+            f"bad length {text!r}: give a number with a unit mm, cm or m (e.g. 50mm, 3m)"
+        )
+    unit = match.group(2)
+    value = float(match.group(1)) * _UNITS[unit or "m"]
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"bad length {text!r}: must be positive and finite")
+    return value, unit
+
+
+def parse_length(text: str) -> float:
+    """`"50mm"`, `"3.5 cm"`, `"3m"` or a bare number (metres) to metres; positive and finite."""
+    return _length(text)[0]
+
+
+def parse_focal_length(text: str) -> float:
+    """As `parse_length`, but a bare number of 1 or more (`50`) is refused: it is surely mm."""
+    value, unit = _length(text)
+    if unit is None and value >= 1:
+        raise argparse.ArgumentTypeError(
+            f"bare number {text!r} would be {value:g} metres; give a unit, e.g. {text.strip()}mm"
+        )
+    return value
+
+
+def _parse_number(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"bad number {text!r}") from None
+
+
+def parse_positive(text: str) -> float:
+    value = _parse_number(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r} must be positive and finite")
+    return value
+
+
+def parse_nonnegative(text: str) -> float:
+    value = _parse_number(text)
+    if not (math.isfinite(value) and value >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r} must be a finite number >= 0")
+    return value
+
+
+# ----------------------------------------------------------------------------------------------
+# Option groups
+
+
+def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
+    what = "starting " if start else ""
+    g = p.add_argument_group(
+        "lens" + (" (the starting point of the fit)" if start else ""),
+        "Lengths take a unit: mm, cm or m (a bare number is metres; --focal-length 50 is refused).",
+    )
+    g.add_argument(
+        "--focal-length",
+        type=parse_focal_length,
+        required=True,
+        metavar="LEN",
+        help=f"{what}focal length, e.g. 50mm",
+    )
+    g.add_argument(
+        "--f-number",
+        type=parse_positive,
+        required=not start,
+        default=4.0 if start else None,
+        metavar="N",
+        help=f"{what}f-number N = f/D, e.g. 2" + (" (default 4)" if start else ""),
+    )
+    g.add_argument(
+        "--focus",
+        type=parse_length,
+        required=not start,
+        default=None,
+        metavar="LEN",
+        help=f"{what}focus distance, e.g. 3m"
+        + (" (default: the median depth of the scene)" if start else ""),
+    )
+    g.add_argument(
+        "--sensor-width",
+        type=parse_length,
+        default=0.036,
+        metavar="LEN",
+        help="sensor width spanned by the image's columns (default 36mm, full frame)",
+    )
+
+
+def _add_file_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group(
+        "files",
+        "Integer images (8/16-bit PNG, TIFF, JPEG) are sRGB: decoded to linear light, encoded\n"
+        "back on output. Float files (float TIFF, .npy, .npz) are linear. EXR is not readable\n"
+        "here (no imageio backend for it): convert to float32 TIFF or .npy.\n"
+        "Depth is z-depth along the optical axis, in metres.",
+    )
+    g.add_argument(
+        "--linear", action="store_true", help="take integer image files as linear light too"
+    )
+    g.add_argument(
+        "--depth-scale",
+        type=parse_length,
+        metavar="LEN",
+        help="metres per count of an integer depth file (e.g. 1mm for millimetre PNGs); with "
+        "--inverse-depth, 1/m per count (a bare number)",
+    )
+    g.add_argument(
+        "--zbuffer",
+        action="store_true",
+        help="depth file is an OpenGL depth buffer in [0, 1] (needs --near, --far)",
+    )
+    g.add_argument("--near", type=parse_length, metavar="LEN", help="near clip plane for --zbuffer")
+    g.add_argument("--far", type=parse_length, metavar="LEN", help="far clip plane for --zbuffer")
+    g.add_argument(
+        "--inverse-depth", action="store_true", help="depth file holds 1/depth (1/m; 0 = infinity)"
+    )
+
+
+def _add_method_option(g, help: str) -> None:
+    g.add_argument("--method", choices=method_names(), default="soft", help=help)
+
+
+def _add_footprint_options(g) -> None:
+    g.add_argument(
+        "--footprint",
+        action="store_true",
+        help="correct for the pixel footprint (blur variance r^2/4 at every radius; off by default)",
+    )
+    g.add_argument(
+        "--downsample",
+        type=int,
+        default=1,
+        metavar="S",
+        help="IMAGE and DEPTH are S times the photo's resolution in each axis (e.g. a pixel-shift "
+        "capture): blur there, then average S x S blocks into the photo's pixels (default 1)",
+    )
+
+
+def _add_filter_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("filter")
+    _add_method_option(g, "filter (default: soft)")
+    g.add_argument(
+        "--max-radius",
+        type=parse_nonnegative,
+        metavar="PX",
+        help="largest circle of confusion in pixels; larger ones are clamped (default: the "
+        "largest in the scene)",
+    )
+    g.add_argument(
+        "--normalize",
+        action="store_true",
+        help="keep brightness at the borders (divide by the filtered image of ones)",
+    )
+    _add_footprint_options(g)
+
+
+# ----------------------------------------------------------------------------------------------
+# Commands
+
+_EPILOG_RENDER = """\
+examples:
+  jaxdof render sharp.png depth.tif -o blurred.png --focal-length 50mm --f-number 2 --focus 3m
+  jaxdof render sharp.tif depth.png --depth-scale 1mm -o out.tif \\
+      --focal-length 85mm --f-number 1.4 --focus 2.5m --sensor-width 23.5mm
+  jaxdof render sharp.npy zbuf.npy --zbuffer --near 0.1m --far 100m -o out.npy \\
+      --focal-length 35mm --f-number 2.8 --focus 4m
+"""
+
+_EPILOG_FIT = """\
+examples:
+  jaxdof fit sharp.png depth.tif photo.png --focal-length 50mm --f-number 4 --focus 5m
+  jaxdof fit sharp.png depth.tif a.png b.png c.png --focal-length 50mm \\
+      --free focal_length f_number focus_distance --shared focal_length f_number --json
+  jaxdof fit sharp.tif depth.npy photo.tif --focal-length 85mm --plot fit.png
+
+From one photo only the blur scale K = f^2/(2N(d_f - f))/pitch and the focus distance can be
+measured, so by default --free is f_number focus_distance with the focal length held; a focus
+bracket (several photos, --shared focal_length f_number) also determines the focal length.
+"""
+
+_EPILOG_DEMO = """\
+examples:
+  jaxdof demo
+  jaxdof demo --out blurred_scene.png
+"""
+
+_FORMAT = argparse.RawDescriptionHelpFormatter
+
+
+def _add_demo(sub) -> None:
+    demo = sub.add_parser(
+        "demo",
+        help="render a built-in scene through a known lens and fit the lens back (no files needed)",
+        description="Render a built-in procedural scene through a known lens (85mm f/1.4 at 3m), "
+        "fit the lens back from a wrong start (f/4 at 5m), print truth beside the recovered values "
+        "with standard errors, and write a figure (sharp, target, refit, residual, CoC map).",
+        epilog=_EPILOG_DEMO,
+        formatter_class=_FORMAT,
+    )
+    demo.add_argument("--out", default="demo.png", metavar="PNG", help="figure path (demo.png)")
+
+
+def _add_render(sub) -> None:
+    render = sub.add_parser(
+        "render",
+        help="render depth of field from an all-in-focus image and a depth map",
+        description="Blur IMAGE as a thin lens would, given the z-depth of every pixel in DEPTH.",
+        epilog=_EPILOG_RENDER,
+        formatter_class=_FORMAT,
+    )
+    render.add_argument("image", metavar="IMAGE", help="all-in-focus image")
+    render.add_argument("depth", metavar="DEPTH", help="depth map, same height and width")
+    render.add_argument(
+        "-o",
+        "--out",
+        required=True,
+        metavar="OUT",
+        help="output (.png, .tif, .jpg, .npy, .npz); integer formats keep the input's bit depth",
+    )
+    _add_lens_options(render, start=False)
+    _add_filter_options(render)
+    _add_file_options(render)
+
+
+def _add_fit(sub) -> None:
+    fit = sub.add_parser(
+        "fit",
+        help="calibrate a lens: fit it to photos of the scene (TARGETs)",
+        description="Fit the lens that turns IMAGE (all in focus) with DEPTH into each TARGET "
+        "photo (Levenberg-Marquardt on the rendered residual).",
+        epilog=_EPILOG_FIT,
+        formatter_class=_FORMAT,
+    )
+    fit.add_argument("image", metavar="IMAGE", help="all-in-focus image")
+    fit.add_argument("depth", metavar="DEPTH", help="depth map, same height and width")
+    fit.add_argument("targets", metavar="TARGET", nargs="+", help="photo(s) taken through the lens")
+    fit.add_argument(
+        "--free",
+        nargs="+",
+        choices=FIELDS,
+        default=["focus_distance", "f_number"],
+        metavar="FIELD",
+        help="lens fields to fit (default: focus_distance f_number); one of " + ", ".join(FIELDS),
+    )
+    fit.add_argument(
+        "--shared",
+        nargs="+",
+        choices=FIELDS,
+        default=[],
+        metavar="FIELD",
+        help="free fields shared by all targets (the others get one value per target)",
+    )
+    fit.add_argument("--max-steps", type=int, default=100, metavar="N", help="solver steps (100)")
+    _add_method_option(
+        fit, "filter of the forward model (default: soft); it must have a derivative in the radius"
+    )
+    _add_footprint_options(fit)
+    fit.add_argument(
+        "--max-radius",
+        type=parse_nonnegative,
+        metavar="PX",
+        help="filter window in pixels (default: chosen by the fit)",
+    )
+    fit.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    fit.add_argument("--plot", metavar="PNG", help="write a comparison figure (needs matplotlib)")
+    fit.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _add_lens_options(fit, start=True)
+    _add_file_options(fit)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `jaxdof` parser; `args.command` names the command (`demo`, `render` or `fit`)."""
+    from .. import __version__
+
+    parser = Parser(
+        prog="jaxdof",
+        description="Differentiable thin-lens depth of field: render defocus blur from an "
+        "all-in-focus image and a depth map, or calibrate a lens from photos.",
+        epilog="Run 'jaxdof COMMAND --help' for each command's options and examples.\n"
+        "Exit status: 0 done, 1 the fit did not converge, 2 bad input (one line on stderr).",
+        formatter_class=_FORMAT,
+    )
+    parser.add_argument("--version", action="version", version=f"jaxdof {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_demo(sub)
+    _add_render(sub)
+    _add_fit(sub)
+    return parser
