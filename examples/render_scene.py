@@ -33,7 +33,10 @@ def main(out: str = "render_scene.png") -> None:
         0.085, 1.4, 4.0, sensor_width=0.036, image_width=image.shape[1]
     )
     radius = jaxdof.coc_radius(jnp.asarray(depth), lens)
-    blurred = jaxdof.render(image, depth, lens)  # window sized from the largest circle in the scene
+    # Three depth planes, three radii: `Auto()` computes the soft filter's weights once per radius
+    # and looks them up (`jaxdof.choose_method(radius)` says which way it chose), same numbers as
+    # the default `Soft()`. The window is sized from the largest circle in the scene.
+    blurred = jaxdof.render(image, depth, lens, method=jaxdof.Auto())
     print(
         f"blur scale K = {float(lens.blur_scale):.2f} px, largest circle {float(radius.max()):.2f} px"
     )

@@ -11,15 +11,28 @@ from ._corrections import (
     depth_edges as depth_edges,
     edge_weight as edge_weight,
     footprint_prefilter as footprint_prefilter,
-    footprint_radius as footprint_radius,
 )
 from ._filters import (
-    DIFFERENTIABLE_IN_RADIUS as DIFFERENTIABLE_IN_RADIUS,
-    METHODS as METHODS,
+    AbstractMethod as AbstractMethod,
+    Aperture as Aperture,
+    Auto as Auto,
+    Hard as Hard,
+    Jitter as Jitter,
+    Layered as Layered,
+    Occlusion as Occlusion,
+    Soft as Soft,
+    Supersample as Supersample,
     choose_method as choose_method,
     coc_filter as coc_filter,
 )
-from ._fit import FitResult as FitResult, fit_lens as fit_lens, solve_lens as solve_lens
+from ._fit import (
+    RESULTS as RESULTS,
+    AbstractForwardModel as AbstractForwardModel,
+    DefocusModel as DefocusModel,
+    FitResult as FitResult,
+    fit_lens as fit_lens,
+    solve_lens as solve_lens,
+)
 from ._lens import (
     ThinLens as ThinLens,
     coc_radius as coc_radius,

@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._filters import AbstractMethod, as_method
 from ._filters.common import is_concrete
-from ._fit import FitResult, solve_lens
+from ._fit import AbstractForwardModel, FitResult, solve_lens
 from ._lens import ThinLens, coc_radius
 from ._render import render
 
@@ -73,7 +74,7 @@ def render_batch(
     depths,
     lens: ThinLens,
     *,
-    method: str = "soft",
+    method: str | AbstractMethod = "soft",
     max_radius: float | None = None,
     normalize: bool = False,
     footprint: bool = False,
@@ -88,8 +89,8 @@ def render_batch(
     - `depths`: `(B, H, W)` z-depths (m).
     - `lens`: one `ThinLens` for every scene (scalar fields), or one per scene (fields of shape
       `(B,)`).
-    - `method`, `normalize`, `footprint`, `downsample`: as in `jaxdof.render` (with `downsample`
-      the output is `(B, H / s, W / s, ...)`).
+    - `method`, `normalize`, `footprint`, `downsample`: as in `jaxdof.render` (a method object or
+      a built-in's name; with `downsample` the output is `(B, H / s, W / s, ...)`).
     - `max_radius`: window size in (the photo's) pixels, shared by the batch. `None` takes the largest circle of
       confusion over the batch (needs concrete inputs).
     - `mesh`: a 1-D mesh from `batch_mesh` (default: all devices).
@@ -105,6 +106,7 @@ def render_batch(
             f"same B, H, W; got images {images.shape} and depths {depths.shape}"
         )
     b = images.shape[0]
+    method = as_method(method)  # a bad name fails here, before any device work
     per_scene = _lens_per_scene(lens, b, "render_batch: every lens field", "one lens")
     if max_radius is None:
         if not is_concrete(depths, lens):
@@ -164,6 +166,7 @@ def fit_batch(
     init: ThinLens,
     *,
     max_radius: float,
+    model: AbstractForwardModel | None = None,
     mesh: Mesh | None = None,
     **solve_kwargs,
 ) -> FitResult:
@@ -181,12 +184,15 @@ def fit_batch(
     - `init`: the start, one `ThinLens` for every scene (scalar fields) or one per scene (fields
       of shape `(B,)`).
     - `max_radius`: the filter window in pixels (static, shared by the batch).
+    - `model`: the forward model, shared by the batch (a `jaxdof.AbstractForwardModel`; default
+      `jaxdof.DefocusModel` of `method`, `footprint`, `downsample`), as in `solve_lens`.
     - `mesh`: a 1-D mesh from `batch_mesh` (default: all devices).
     - `solve_kwargs`: `free`, `shared`, `solver`, `max_steps`, `weight` (`(B, ...)`), `exposure`,
-      `method`, as in `solve_lens`.
+      or the default model's `method`, `footprint`, `downsample`, as in `solve_lens`.
 
     **Returns:** a `FitResult` whose array fields have a leading batch axis `B` (read `.status` /
-    `.success` per scene, as with `solve_lens`; no multi-start and no message).
+    `.success` per scene, as with `solve_lens`; no multi-start; a scene's `message` from its own
+    result, `jax.tree_util.tree_map(lambda x: x[i], result).message`).
     """
     images, depths, targets = jnp.asarray(images), jnp.asarray(depths), jnp.asarray(targets)
     b = images.shape[0]
@@ -213,7 +219,14 @@ def fit_batch(
     def one(image, depth, target, weight_i, init_i):
         start = init if init_i is None else init_i
         return solve_lens(
-            image, depth, target, start, max_radius=max_radius, weight=weight_i, **solve_kwargs
+            image,
+            depth,
+            target,
+            start,
+            max_radius=max_radius,
+            weight=weight_i,
+            model=model,
+            **solve_kwargs,
         )
 
     axes = (0, 0, 0, None if weight is None else 0, 0 if per_scene else None)

@@ -8,7 +8,7 @@ from jaxtyping import Array
 
 from ._corrections import footprint_prefilter
 from ._custom_types import DepthLike, Image, ImageLike
-from ._filters import coc_filter
+from ._filters import AbstractMethod, as_method, coc_filter
 from ._lens import ThinLens, _check_depth, _error_if_invalid, coc_radius
 
 
@@ -17,16 +17,9 @@ def render(
     depth: DepthLike,
     lens: ThinLens,
     *,
-    method: str = "soft",
+    method: str | AbstractMethod = "soft",
     max_radius: float | None = None,
     normalize: bool = False,
-    samples: int | None = None,
-    key=None,
-    pattern: str | None = None,
-    blades: int | None = None,
-    rotation: float | None = None,
-    layers: int | None = None,
-    fill: bool | None = None,
     footprint: bool = False,
     downsample: int = 1,
 ) -> Image:
@@ -39,9 +32,11 @@ def render(
     - `image`: all-in-focus linear-light image, `(H, W)` or `(H, W, C)`.
     - `depth`: z-depth along the optical axis (m), `(H, W)`, `> lens.focal_length`; `inf` allowed.
     - `lens`: the `ThinLens`.
-    - `method`, `normalize`, and the method's knobs (`samples`, `key`, `pattern`, `blades`,
-      `rotation`, `layers`, `fill`): as in `coc_filter`. `method="occlusion"` (opt-in) orders the
-      layers by `depth`, which `render` passes to the filter itself.
+    - `method`: a method object (`jaxdof.Soft()`, `jaxdof.Aperture(pattern="ring")`, a subclass
+      of `jaxdof.AbstractMethod` of your own) or a built-in's name, as in `coc_filter`. A method
+      that reads depth (`method.uses_depth`: `jaxdof.Occlusion`, opt-in) gets `depth` from
+      `render` itself.
+    - `normalize`: as in `coc_filter`.
     - `footprint`: opt-in pixel-footprint correction (default off): spread
       `footprint_prefilter(image, r)` instead of `image`, so that the blur of every pixel has the
       lens's variance `r^2 / 4`, also for circles under half a pixel, where the plain filter copies
@@ -75,6 +70,7 @@ def render(
     depth = jnp.asarray(depth)
     image = jnp.asarray(image)
     s = _check_downsample(downsample, image.shape)
+    method = as_method(method)
     if depth.shape != image.shape[:2]:
         raise ValueError(
             f"depth must have the image's (H, W) = {image.shape[:2]}, got {depth.shape}"
@@ -87,7 +83,6 @@ def render(
     if s > 1:  # circles and window in the input's pixels, s times smaller than the photo's
         radius = radius * s
         max_radius = None if max_radius is None else max_radius * s
-    knobs = dict(samples=samples, key=key, pattern=pattern, blades=blades, rotation=rotation)
     if footprint:  # corrected for the radius the filter spreads (clamped to the window)
         r = radius if max_radius is None else jnp.minimum(radius, max_radius)
         image = footprint_prefilter(image, r)
@@ -97,10 +92,7 @@ def render(
         method=method,
         max_radius=max_radius,
         normalize=normalize,
-        layers=layers,
-        depth=depth if method == "occlusion" else None,
-        fill=fill,
-        **knobs,
+        depth=depth if method.uses_depth else None,
     )
     return box_downsample(out, s)
 

@@ -17,7 +17,7 @@ FUNCTIONS = [n for n in PUBLIC if inspect.isfunction(getattr(jaxdof, n))]
 def test_every_export_is_documented(name):
     obj = getattr(jaxdof, name)
     if isinstance(obj, (tuple, dict, str)):
-        return  # constants: METHODS, DIFFERENTIABLE_IN_RADIUS, __version__-like values
+        return  # constants: __version__-like values
     assert inspect.getdoc(obj), f"jaxdof.{name} has no docstring"
 
 
@@ -40,5 +40,22 @@ def test_version():
     assert isinstance(jaxdof.__version__, str)
 
 
-def test_methods_table_is_complete():
-    assert set(jaxdof.DIFFERENTIABLE_IN_RADIUS) == set(jaxdof.METHODS)
+METHOD_CLASSES = [
+    n
+    for n in PUBLIC
+    if inspect.isclass(getattr(jaxdof, n)) and issubclass(getattr(jaxdof, n), jaxdof.AbstractMethod)
+]
+
+
+def test_filter_methods_are_exported_objects():
+    """The method family is public as classes (no string tables): the base and every built-in."""
+    expected = {"Soft", "Hard", "Supersample", "Jitter", "Aperture", "Layered", "Occlusion", "Auto"}
+    assert set(METHOD_CLASSES) == expected | {"AbstractMethod"}
+    assert not hasattr(jaxdof, "METHODS") and not hasattr(jaxdof, "DIFFERENTIABLE_IN_RADIUS")
+
+
+@pytest.mark.parametrize("name", METHOD_CLASSES)
+def test_method_options_are_keyword_only(name):
+    """A method's options are keyword-only, as a function's are."""
+    params = inspect.signature(getattr(jaxdof, name)).parameters.values()
+    assert all(p.kind == p.KEYWORD_ONLY for p in params), name

@@ -9,6 +9,7 @@ import subprocess
 import sys
 import textwrap
 
+import jax
 import numpy as np
 import pytest
 
@@ -128,6 +129,22 @@ def test_sharded_fit_matches_single_device():
     _run_on_four_cpu_devices(FIT_SCRIPT)
 
 
+def test_render_batch_takes_a_method_object():
+    """A method object (here with a key, an array leaf) or its alias, as `render` takes them."""
+    rng = np.random.default_rng(2)
+    images, depths = rng.uniform(size=(3, 5, 6)), rng.uniform(1.0, 4.0, (3, 5, 6))
+    lens = ThinLens(0.05, 2.0, 2.0, 2e-4)
+    method = jaxdof.Jitter(samples=4, key=jax.random.key(3))
+    out = jaxdof.render_batch(images, depths, lens, method=method, max_radius=2.0)
+    for b in range(3):
+        one = jaxdof.render(images[b], depths[b], lens, method=method, max_radius=2.0)
+        # jit(vmap) and eager run the same operations; XLA may fuse them differently (a few ulp)
+        np.testing.assert_allclose(np.asarray(out[b]), np.asarray(one), rtol=0, atol=1e-13)
+    alias = jaxdof.render_batch(images, depths, lens, method="hard", max_radius=2.0)
+    want = jaxdof.render_batch(images, depths, lens, method=jaxdof.Hard(), max_radius=2.0)
+    np.testing.assert_array_equal(np.asarray(alias), np.asarray(want))
+
+
 def test_bad_batches_are_rejected():
     images, depths = np.ones((2, 4, 4)), np.full((2, 4, 4), 2.0)
     lens = ThinLens(0.05, 2.0, 1.5, 2e-4)
@@ -136,6 +153,8 @@ def test_bad_batches_are_rejected():
     three = ThinLens(np.full(3, 0.05), np.full(3, 2.0), np.full(3, 1.5), np.full(3, 2e-4))
     with pytest.raises(ValueError, match=r"shape \(2,\)"):
         jaxdof.render_batch(images, depths, three)
+    with pytest.raises(ValueError, match="is not a filter method"):
+        jaxdof.render_batch(images, depths, lens, method="nope")
     with pytest.raises(ValueError, match="no leading batch axis"):
         jaxdof.shard_batch(np.float64(1.0), jaxdof.batch_mesh())
     with pytest.raises(ValueError, match="same B, H, W"):

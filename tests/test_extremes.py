@@ -9,7 +9,6 @@
    (`equinox.error_if`) from `render` and `coc_filter`, also under `vmap` and `grad`.
 """
 
-import importlib
 import math
 
 import equinox as eqx
@@ -28,11 +27,8 @@ from jaxdof import (
     signed_coc_radius,
 )
 
-from .helpers import method_kwargs
+from .helpers import METHODS, method_id
 
-
-_coc_filter_module = importlib.import_module("jaxdof._filters.coc_filter")
-METHODS = tuple(_coc_filter_module.METHODS)
 
 F = 0.05
 
@@ -145,13 +141,12 @@ def test_grid_overlap_float32(float32):
 
 
 def _grid_filter_check(dtype, method):
-    kw = method_kwargs(method)
     rng = np.random.default_rng(1)
     image = jnp.asarray(rng.uniform(size=(3, 4)), dtype)
     radius = jnp.asarray(np.array(RADII, np.float64).reshape(3, 4), dtype)
 
     def loss(image, radius):
-        out = coc_filter(image, radius, method=method, max_radius=3.0, **kw)
+        out = coc_filter(image, radius, method=method, max_radius=3.0)
         return jnp.sum(out * out), out
 
     (g_img, g_rad), out = jax.jit(jax.grad(loss, argnums=(0, 1), has_aux=True))(image, radius)
@@ -162,12 +157,12 @@ def _grid_filter_check(dtype, method):
         assert _finite(g), (method, shape)
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS, ids=method_id)
 def test_grid_filter_float64(method):
     _grid_filter_check(jnp.float64, method)
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS, ids=method_id)
 def test_grid_filter_float32(float32, method):
     _grid_filter_check(jnp.float32, method)
 
@@ -283,15 +278,14 @@ def test_jit_float32_render_raises(float32):
         jax.block_until_ready(f(jnp.full((3, 4), jnp.nan, jnp.float32)))
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS, ids=method_id)
 @pytest.mark.parametrize("bad", [-1.0, np.nan])
 def test_invalid_radius(method, bad):
-    kw = method_kwargs(method)
     radius = np.full((3, 4), 1.5)
     radius[2, 1] = bad
     with pytest.raises(ValueError, match=">= 0"):
-        coc_filter(np.ones((3, 4)), radius, method=method, max_radius=2.0, **kw)
-    f = jax.jit(lambda r: coc_filter(jnp.ones((3, 4)), r, method=method, max_radius=2.0, **kw))
+        coc_filter(np.ones((3, 4)), radius, method=method, max_radius=2.0)
+    f = jax.jit(lambda r: coc_filter(jnp.ones((3, 4)), r, method=method, max_radius=2.0))
     with pytest.raises(RUNTIME, match="radius must be >= 0"):
         jax.block_until_ready(f(jnp.asarray(radius)))
 

@@ -150,7 +150,7 @@ def test_bad_inputs():
         coc_filter(np.ones((4, 5), np.uint8), np.zeros((4, 5)), max_radius=1.0)
     with pytest.raises(ValueError, match=">= 0"):
         coc_filter(image, -np.ones((4, 5)), max_radius=1.0)
-    with pytest.raises(ValueError, match="method"):
+    with pytest.raises(ValueError, match="method='nope' is not a filter method"):
         coc_filter(image, np.zeros((4, 5)), method="nope", max_radius=1.0)
     with pytest.raises(ValueError, match="shape"):
         coc_filter(np.ones((2, 3, 4, 5)), np.zeros((2, 3)), max_radius=1.0)

@@ -5,7 +5,9 @@ compiled configurations: one 32x32 scene, `max_radius=WINDOW` and `starts=2` whe
 the test allows, so that most fits reuse the first compilation.
 """
 
+import json
 import pathlib
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +16,9 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxdof
-from jaxdof import ThinLens, _fit, fit_lens, render, solve_lens
+import jaxdof._fit.solve as fit_solve
+from jaxdof import RESULTS, ThinLens, fit_lens, render, solve_lens
+from jaxdof._fit import auto_levels, layout, prepare, record_stages, residual, strategies
 
 
 H = W = 32
@@ -97,8 +101,8 @@ def test_noise_free_recovery_float32(float32):
         err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
         assert max(err.values()) < 1e-3, (free, err)  # the issue's float32 target
         # Free sets of one size run the same compiled solve (which fields is data, not code).
-        size = compiled.setdefault(len(free), _fit._fit_starts._cached._cache_size())
-        assert _fit._fit_starts._cached._cache_size() == size, free
+        size = compiled.setdefault(len(free), fit_solve.fit_starts._cached._cache_size())
+        assert fit_solve.fit_starts._cached._cache_size() == size, free
     # The rank test also holds at float32's rounding level (same compiled solve).
     with pytest.raises(ValueError, match="not determined by the data"):
         fit_lens(
@@ -132,7 +136,12 @@ def test_degenerate_free_set_refused(free):
         allow_degenerate=True,
     )
     assert not bool(res.success)
+    assert bool(res.status == RESULTS.degenerate)
     assert "not determined" in res.message
+    # JSON-ready: the undetermined standard errors (inf) become null.
+    obj = json.loads(json.dumps(res.to_dict(), allow_nan=False))
+    assert obj["status"] == "degenerate" and obj["success"] is False
+    assert obj["stderr"]["focal_length"] is None and obj["message"] == res.message
     # f and N move together along the null direction: no standard error for them ...
     assert np.isinf(float(res.stderr["focal_length"])) and np.isinf(float(res.stderr["f_number"]))
     # ... but K and d_f are determined, so the fit still reproduces the photo and the focus.
@@ -155,6 +164,7 @@ def test_dead_zone_detected():
         image, depth, target, tiny, max_radius=WINDOW, starts=STARTS, allow_degenerate=True
     )
     assert not bool(res.success) and "half a pixel" in res.message
+    assert bool(res.status == RESULTS.dead_zone)
 
 
 def test_reproducible_bit_for_bit():
@@ -163,13 +173,22 @@ def test_reproducible_bit_for_bit():
     target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
     init = wrong_init(("f_number", "focus_distance"))
     a = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
-    compiled = (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size())
+    compiled = (fit_solve.fit_starts._cached._cache_size(), fit_solve.finish._cached._cache_size())
     b = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
     # A repeated call with the same shapes re-uses both compiled pieces: no re-tracing.
-    assert (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size()) == compiled
+    assert (
+        fit_solve.fit_starts._cached._cache_size(),
+        fit_solve.finish._cached._cache_size(),
+    ) == compiled
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert a.message == b.message
+    # The compiled stages can be timed without patching: one `fit_starts`, then `finish`.
+    with record_stages() as log:
+        c = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+    assert [name for name, _ in log] == ["fit_starts", "finish"]
+    assert all(t > 0 for _, t in log)
+    np.testing.assert_array_equal(np.asarray(c.lenses.f_number), np.asarray(a.lenses.f_number))
 
 
 def test_stderr_matches_noisy_spread():
@@ -239,6 +258,18 @@ def test_focus_bracket_recovers_f_and_n(capsys):
     # f and N are each determined (finite errors), unlike from a single photo.
     assert np.all(np.isfinite(np.asarray(res.stderr["focal_length"])))
     assert "focus_distance" in res.summary()
+    # JSON-ready (SI units), one lens per target, the first one also at the top level.
+    obj = json.loads(json.dumps(res.to_dict(), allow_nan=False))
+    assert [x["focus_distance"] for x in obj["lenses"]] == pytest.approx(focus, rel=1e-4)
+    assert obj["focal_length"] == pytest.approx(TRUE["focal_length"], rel=1e-4)
+    assert obj["lenses"][2]["stderr"]["focus_distance"] == pytest.approx(
+        float(res.stderr["focus_distance"][2])
+    )
+    assert obj["names"] == list(res.names) and len(obj["covariance"]) == len(res.names)
+    assert (obj["status"], obj["success"], obj["message"]) == ("successful", True, "converged")
+    assert obj["steps"] == int(res.num_steps) and obj["levels"] == 1
+    assert obj["max_radius"] == 10.0 and obj["gain"] == [1.0, 1.0, 1.0]
+    assert {"loss", "sigma", "condition", "offset", "pixel_pitch"} <= set(obj)
 
 
 def test_solve_lens_vmap_compiles_once():
@@ -315,6 +346,7 @@ def test_window_too_small_is_reported():
         starts=STARTS,
     )
     assert not bool(res.success) and "max_radius" in res.message
+    assert bool(res.status == RESULTS.window)
 
 
 @pytest.mark.parametrize(
@@ -347,6 +379,8 @@ def test_bad_targets():
 
 def test_exported():
     assert jaxdof.fit_lens is fit_lens and jaxdof.FitResult.__doc__
+    assert jaxdof.RESULTS is RESULTS and len(RESULTS) == 7
+    assert issubclass(jaxdof.DefocusModel, jaxdof.AbstractForwardModel)
 
 
 def test_residual_jacobian_rule():
@@ -355,11 +389,13 @@ def test_residual_jacobian_rule():
     data alike, forward and reverse."""
     image, depth = (x[:12, :12] for x in scene())
     target = np.asarray(render(image, depth, lens(), max_radius=3.0)) + 0.01
-    image, depth, targets, sqrt_w, base, _ = _fit._prepare(image, depth, target, lens(), None)
-    layout = _fit._Spec(("f_number", "focus_distance"), (), 1, False).layout(base, depth)
-    model = _fit._Model(1, 3.0, False, n_live=2)
-    args = (image, depth, targets, sqrt_w, layout)
-    y = model.pack(base, layout) + jnp.array([0.0, 0.3, -0.2])  # off the data, circles > 1/2 px
+    image, depth, targets, sqrt_w, base, _ = prepare._prepare(
+        image, depth, target, lens(), None, jaxdof.DefocusModel()
+    )
+    lay = layout._Spec(("f_number", "focus_distance"), (), 1, False).layout(base, depth)
+    model = residual._Model(1, 3.0, False, jaxdof.DefocusModel(), n_live=2)
+    args = (image, depth, targets, sqrt_w, lay)
+    y = model.pack(base, lay) + jnp.array([0.0, 0.3, -0.2])  # off the data, circles > 1/2 px
     jac = jax.jit(jax.jacfwd(model))
     plain = jax.jit(jax.jacfwd(model.residuals))
     np.testing.assert_allclose(jac(y, args), plain(y, args), rtol=1e-12, atol=1e-15)
@@ -369,6 +405,149 @@ def test_residual_jacobian_rule():
     check_grads(
         jax.jit(lambda im: model(y, (im, *args[1:]))), (image,), order=1, modes=("fwd", "rev")
     )
+
+
+# ------------------------------------------------------------------------------ forward models
+
+
+class GaussianDefocus(jaxdof.AbstractForwardModel):
+    """A forward model of a user's own: every pixel spread by a normalised Gaussian whose variance
+    is `spread * (r^2 / 4 + 1 / 4)` px^2 (the thin lens's blur variance plus the pixel's), `r` the
+    circle of confusion clamped to the window. `spread` is an array field: traced in the solve."""
+
+    spread: jax.Array
+    differentiable_in_lens: ClassVar[bool] = True
+
+    def __call__(self, image, depth, lens, *, max_radius):
+        image = jnp.asarray(image)
+        h, w = image.shape
+        r = jnp.minimum(jaxdof.coc_radius(depth, lens), max_radius)
+        var = self.spread * (r * r / 4 + 0.25)
+        k = int(np.ceil(max_radius))
+        offsets = [(dy, dx) for dy in range(-k, k + 1) for dx in range(-k, k + 1)]
+        d2 = jnp.asarray([dy * dy + dx * dx for dy, dx in offsets], image.dtype)
+        weight = jnp.exp(-d2[:, None, None] / (2 * var[None]))
+        sent = image[None] * weight / jnp.sum(weight, axis=0)[None]  # (offset, H, W)
+        sent = jnp.pad(sent, ((0, 0), (k, k), (k, k)))
+        # out[p] = sum_o sent_o[p - o]
+        return sum(
+            sent[i, k - dy : k - dy + h, k - dx : k - dx + w] for i, (dy, dx) in enumerate(offsets)
+        )
+
+
+def test_user_forward_model_through_fit_lens():
+    """A subclass of AbstractForwardModel runs through fit_lens as it is (no patching, no cache
+    clearing): it is part of the compiled solve's key, so it and the default model each get their
+    own compilation, on the same shapes, in any order."""
+    image, depth = scene()
+    model = GaussianDefocus(spread=jnp.asarray(1.0))
+    true = lens()
+    target = np.asarray(model(image, depth, true, max_radius=WINDOW))
+    free = ("f_number", "focus_distance")
+    kw = dict(free=free, max_radius=WINDOW, starts=1, pyramid=1)
+    res = fit_lens(image, depth, target, wrong_init(free), model=model, **kw)
+    assert bool(res.success), res.message
+    err = rel_err(res.lens, true, ("f_number", "focus_distance"))
+    assert max(err.values()) < 1e-4, err  # noise-free float64, as for the default model
+    # The default model on the same photo: a compilation of its own, and a worse fit (a disc is
+    # not a Gaussian).
+    plain = fit_lens(image, depth, target, wrong_init(free), **kw)
+    assert float(plain.loss) > 1e6 * float(res.loss) + 1e-12
+    again = fit_lens(image, depth, target, wrong_init(free), model=model, **kw)
+    for x, y in zip(jax.tree_util.tree_leaves(res), jax.tree_util.tree_leaves(again)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # A model with another array value is the same compiled solve (arrays are traced).
+    size = fit_solve.fit_starts._cached._cache_size()
+    wider = GaussianDefocus(spread=jnp.asarray(1.5))
+    fit_lens(
+        image,
+        depth,
+        np.asarray(wider(image, depth, true, max_radius=WINDOW)),
+        true,
+        model=wider,
+        **kw,
+    )
+    assert fit_solve.fit_starts._cached._cache_size() == size
+
+
+def test_user_forward_model_gradients():
+    """The user's render is an ordinary differentiable function: jax.grad with respect to a lens
+    field and to the model's own array, against float64 finite differences."""
+    image, depth = (x[:12, :12] for x in scene())
+    probe = np.random.default_rng(3).uniform(size=image.shape)  # a sum alone is conserved
+
+    def loss(model, n, d_f):
+        out = model(image, depth, ThinLens(0.05, n, d_f, PITCH), max_radius=3.0)
+        return jnp.sum(out * probe)
+
+    model = GaussianDefocus(spread=jnp.asarray(1.0))
+    n, d_f = jnp.asarray(2.0), jnp.asarray(1.7)
+    g_n, g_d = jax.grad(loss, argnums=(1, 2))(model, n, d_f)
+    assert np.isfinite(float(g_n)) and float(g_n) != 0 and float(g_d) != 0
+    g_model = jax.grad(loss)(model, n, d_f)  # a pytree: the gradient is a GaussianDefocus
+    assert isinstance(g_model, GaussianDefocus) and float(g_model.spread) != 0
+    # float64 finite differences, eps 1e-4 on values of order 1 (jitted: one compilation each).
+    check_grads(jax.jit(lambda n, d: loss(model, n, d)), (n, d_f), order=1, modes=("fwd", "rev"))
+    spread = jax.jit(lambda s: loss(GaussianDefocus(spread=s), n, d_f))
+    check_grads(spread, (jnp.asarray(1.0),), order=1, modes=("fwd", "rev"))
+
+
+def test_model_and_its_options_conflict():
+    """The default model's keywords belong to the model: both at once is a ValueError."""
+    image, depth = scene()
+    target = np.zeros((H, W))
+    with pytest.raises(ValueError, match="given together with method='soft'"):
+        fit_lens(image, depth, target, lens(), model=jaxdof.DefocusModel(), method="soft")
+    with pytest.raises(ValueError, match="given together with footprint=True, downsample=1"):
+        solve_lens(
+            image,
+            depth,
+            target,
+            lens(),
+            max_radius=WINDOW,
+            model=GaussianDefocus(spread=jnp.asarray(1.0)),
+            footprint=True,
+            downsample=1,
+        )
+    with pytest.raises(ValueError, match="cannot drive a fit"):
+        fit_lens(image, depth, target, lens(), model=jaxdof.DefocusModel(method="hard"))
+    with pytest.raises(ValueError, match="cannot drive a fit"):
+        solve_lens(image, depth, target, lens(), max_radius=WINDOW, method="hard")
+    assert not jaxdof.DefocusModel(method=jaxdof.Hard()).differentiable_in_lens
+    assert jaxdof.DefocusModel(method=jaxdof.Soft(), downsample=2).photo_shape((8, 6, 3)) == (
+        4,
+        3,
+        3,
+    )
+    with pytest.raises(ValueError, match="downsample"):
+        jaxdof.DefocusModel(downsample=0)
+
+
+def test_status_per_batch_element():
+    """`solve_lens` under vmap over two scenes, one of which cannot be fitted (the depth plane sits
+    at the init's focus distance: no blur, zero Jacobian): a status and a message per scene."""
+    image, depth = scene()
+    init = lens(f_number=2.5, focus_distance=1.7)
+    flat = np.full((H, W), 1.7)  # every circle 0 at the init, and its derivatives too
+    images = np.stack([image, image])
+    depths = np.stack([depth, flat])
+    targets = np.stack([np.asarray(render(image, depth, lens())), image])
+
+    def fit(i, d, t):
+        return solve_lens(i, d, t, init, max_radius=WINDOW)
+
+    res = jax.vmap(fit)(images, depths, targets)
+    np.testing.assert_array_equal(np.asarray(res.success), [True, False])
+    np.testing.assert_array_equal(np.asarray(res.status == RESULTS.successful), [True, False])
+    one = jax.tree_util.tree_map(lambda x: x[0], res)
+    two = jax.tree_util.tree_map(lambda x: x[1], res)
+    assert bool(one.status == RESULTS.successful) and one.message == "converged"
+    assert bool(two.status == RESULTS.dead_zone) and "half a pixel" in two.message
+    assert RESULTS[two.status] == two.message  # solve_lens adds no notes
+    assert json.loads(json.dumps(two.to_dict()))["status"] == "dead_zone"
+    np.testing.assert_allclose(float(one.lens.focus_distance), TRUE["focus_distance"], rtol=1e-4)
+    with pytest.raises(ValueError, match="batch"):
+        res.message  # noqa: B018  (one fit's words: index the batch first)
 
 
 # ----------------------------------------------------------------------------------- pyramid
@@ -455,9 +634,12 @@ def test_pyramid_reproducible_and_warm():
     init = wrong_init(("f_number", "focus_distance"))
     kw = dict(max_radius=WINDOW, starts=STARTS, pyramid=PYRAMID)
     a = fit_lens(image, depth, target, init, **kw)
-    compiled = (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size())
+    compiled = (fit_solve.fit_starts._cached._cache_size(), fit_solve.finish._cached._cache_size())
     b = fit_lens(image, depth, target, init, **kw)
-    assert (_fit._fit_starts._cached._cache_size(), _fit._finish._cached._cache_size()) == compiled
+    assert (
+        fit_solve.fit_starts._cached._cache_size(),
+        fit_solve.finish._cached._cache_size(),
+    ) == compiled
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert a.message == b.message and a.levels == b.levels == PYRAMID
@@ -466,12 +648,12 @@ def test_pyramid_reproducible_and_warm():
 def test_pyramid_levels_chosen_as_documented():
     """Automatic levels: halve while the shorter side stays >= 24 px and the init's largest circle
     >= 1 px; the 32 x 32 test scene stays at full resolution."""
-    assert _fit._auto_levels((24, 24), 3.6) == 1  # 12 px would be under 24
-    assert _fit._auto_levels((96, 96), 3.6) == 2  # 48 px, 1.8 px circles; 0.9 px would be too few
-    assert _fit._auto_levels((96, 96), 8.0) == 3  # 48, 24 px: circles 4, 2 px
-    assert _fit._auto_levels((192, 400), 10.0) == 4  # shorter side 192 -> 96 -> 48 -> 24
-    assert _fit._auto_levels((47, 500), 50.0) == 1  # shorter side 47 -> 23
-    assert _fit._auto_levels((512, 512), 0.9) == 1  # the init is in the dead zone already
+    assert auto_levels((24, 24), 3.6) == 1  # 12 px would be under 24
+    assert auto_levels((96, 96), 3.6) == 2  # 48 px, 1.8 px circles; 0.9 px would be too few
+    assert auto_levels((96, 96), 8.0) == 3  # 48, 24 px: circles 4, 2 px
+    assert auto_levels((192, 400), 10.0) == 4  # shorter side 192 -> 96 -> 48 -> 24
+    assert auto_levels((47, 500), 50.0) == 1  # shorter side 47 -> 23
+    assert auto_levels((512, 512), 0.9) == 1  # the init is in the dead zone already
     image, depth = scene()
     res = fit_lens(image, depth, render(image, depth, lens()), lens(), max_radius=WINDOW,
                    starts=STARTS)  # fmt: skip
@@ -494,7 +676,7 @@ def test_pyramid_downsample():
     sqrt_w = np.ones((2, 5, 6, 2))
     sqrt_w[1, 3, 4, 0] = 0.0
     base = np.array([[0.05, 2.0, 1.6, 1e-4]] * 2)
-    im, dep, tg, sw, b = _fit._downsample(image, depth, targets, sqrt_w, base)
+    im, dep, tg, sw, b = strategies._downsample(image, depth, targets, sqrt_w, base)
     assert im.shape == (2, 3, 2) and dep.shape == (2, 3) and tg.shape == sw.shape == (2, 2, 3, 2)
     np.testing.assert_allclose(im[1, 2], image[2:4, 4:6].mean(axis=(0, 1)), rtol=1e-15)
     np.testing.assert_allclose(tg[0, 0, 1], targets[0, 0:2, 2:4].mean(axis=(0, 1)), rtol=1e-15)
@@ -504,7 +686,7 @@ def test_pyramid_downsample():
     np.testing.assert_allclose(k * (1 - d_f / dep), mean, rtol=1e-13)
     assert np.isfinite(dep[0, 0])  # one pixel at infinity: 1/d averages to a finite depth
     assert np.isinf(
-        _fit._downsample(image, np.full((5, 6), np.inf), targets, sqrt_w, base)[1]
+        strategies._downsample(image, np.full((5, 6), np.inf), targets, sqrt_w, base)[1]
     ).all()
     assert sw[1, 1, 2, 0] == 0.0 and sw[1, 1, 2, 1] == 1.0 and np.sum(sw == 0) == 1
     np.testing.assert_array_equal(b[:, 3], 2e-4)
@@ -546,5 +728,5 @@ def test_near_far_ambiguity_is_reported(pyramid):
     )
     assert res.levels == pyramid
     # Both starts reach an exact fit, at different focus distances: never a silent pick.
-    assert not bool(res.success)
+    assert not bool(res.success) and bool(res.status == RESULTS.ambiguous)
     assert "another start converged" in res.message

@@ -47,7 +47,7 @@ def test_render_footprint_every_input():
     """Image, depth and every lens field (float64, forward and reverse mode), on a scene with
     depths at infinity, at the focus plane and just beyond the focal length (clamped)."""
     image, depth, inf_mask = _extreme_depths()
-    f = _render("soft", {"footprint": True}, inf_mask=inf_mask)
+    f = _render(inf_mask=inf_mask, footprint=True)
     check(f, (image, depth, *LENS_ARGS), jit=True)
 
 

@@ -14,7 +14,6 @@ sqrt(2)/2, r = 0 at the edge of the domain) we check one-sided difference quotie
 that they converge to the derivative at the rate the local expansion predicts.
 """
 
-import importlib
 import math
 
 import jax
@@ -24,6 +23,7 @@ import pytest
 from jax.test_util import check_grads
 
 from jaxdof import (
+    Aperture,
     ThinLens,
     circle_pixel_overlap,
     coc_filter,
@@ -33,7 +33,7 @@ from jaxdof import (
     signed_coc_radius,
 )
 
-from .helpers import method_kwargs
+from .helpers import METHODS, RADIUS_METHODS, method_id
 
 
 # The issue's target: float64 gradients agree with finite differences to 1e-6 relative.
@@ -265,13 +265,9 @@ def test_overlap_at_circumscribed_circle():
 # regime changes, radii far above max_radius, a constant block) and is checked in one call per
 # method; the non-smooth points get their own one-sided checks.
 
-# `jaxdof._filters.coc_filter` the module (the package re-exports the function under that name)
-_coc_filter_module = importlib.import_module("jaxdof._filters.coc_filter")
-METHODS = tuple(_coc_filter_module.METHODS)
-# Methods documented as having no true derivative in the radius (piecewise constant output, or a
-# gradient shared over a level) are checked in the image only.
-_DIFF = getattr(_coc_filter_module, "DIFFERENTIABLE_IN_RADIUS", {})
-RADIUS_METHODS = tuple(m for m in METHODS if _DIFF.get(m, m == "soft"))
+# The catalogue's methods (tests/helpers.py). Those documented as having no true derivative in the
+# radius (`differentiable_in_radius = False`: piecewise constant output, or a gradient shared over
+# a level) are checked in the image only.
 
 
 MAXR = 2.5
@@ -288,20 +284,19 @@ def _mixed_scene(h=4, w=5, c=2, seed=0):
     return image, radius
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", METHODS, ids=method_id)
 def test_filter_every_method(method):
     """Image and (where documented differentiable) radius, forward and reverse. Linear in the
     image, so order 2 adds nothing there; order 2 in the radius for the soft filter below."""
-    kw = method_kwargs(method)
     image, radius = _mixed_scene()
-    if method in RADIUS_METHODS:
-        f = lambda i, r: coc_filter(i, r, method=method, max_radius=MAXR, **kw)
+    if method.differentiable_in_radius:
+        f = lambda i, r: coc_filter(i, r, method=method, max_radius=MAXR)
         check(f, (image, radius), jit=True)
         g = jax.grad(lambda r: jnp.sum(f(jnp.asarray(image), r) ** 2))(jnp.asarray(radius))
         assert np.all(np.asarray(g)[0, :2] == 0.0)  # the clamped radii
     else:
         check(
-            lambda i: coc_filter(i, radius, method=method, max_radius=MAXR, **kw),
+            lambda i: coc_filter(i, radius, method=method, max_radius=MAXR),
             (image,),
             jit=True,
         )
@@ -335,7 +330,7 @@ def test_filter_dead_zone_and_regime_changes():
 # ----- render: image, depth and every lens field (pitch in units of 10 um: radii of a few px)
 
 
-def _render(method, kw, max_radius=3.0, inf_mask=None):
+def _render(method="soft", max_radius=3.0, inf_mask=None, **options):
     """render as a function of (image, depth, f, N, d_f, pitch / 10 um); `inf_mask` pins those
     depths at infinity (they cannot be perturbed by finite differences)."""
 
@@ -343,7 +338,7 @@ def _render(method, kw, max_radius=3.0, inf_mask=None):
         if inf_mask is not None:
             depth = jnp.where(inf_mask, jnp.inf, depth)
         lens = ThinLens(fl, n, d_f, pitch * 1e-5)
-        return render(image, depth, lens, method=method, max_radius=max_radius, **kw)
+        return render(image, depth, lens, method=method, max_radius=max_radius, **options)
 
     return f
 
@@ -369,7 +364,7 @@ def _extreme_depths(h=4, w=5, seed=0):
     return image, depth, inf_mask
 
 
-@pytest.mark.parametrize("method", RADIUS_METHODS)
+@pytest.mark.parametrize("method", RADIUS_METHODS, ids=method_id)
 def test_render_every_input(method):
     """Image, depth and every lens field, on a scene with depths at infinity, at the focus plane
     and just beyond the focal length. (Methods without a radius derivative: the image check in
@@ -381,21 +376,22 @@ def test_render_every_input(method):
     the symmetric subgradient differs from a central difference; that pixel is moved off focus.
     """
     image, depth, inf_mask = _extreme_depths()
-    if method == "aperture":
+    aperture = isinstance(method, Aperture)
+    if aperture:
         depth[1, :2] = 2.0
-    f = _render(method, method_kwargs(method), inf_mask=inf_mask)
+    f = _render(method, inf_mask=inf_mask)
     # `aperture` is piecewise linear in the radius (a kink wherever a lens sample crosses a pixel
     # centre, dozens per pixel of radius): a central difference must not straddle one. The
     # focal length moves the radii fastest (dr/df ~ 2r/f ~ 100 px/m), so eps = 1e-8 keeps every
     # radius step below ~1e-6 px; round-off 1e-16 / 1e-8 ~ 1e-8 relative still meets RTOL.
-    check(f, (image, depth, *LENS_ARGS), jit=True, eps=1e-8 if method == "aperture" else 1e-6)
+    check(f, (image, depth, *LENS_ARGS), jit=True, eps=1e-8 if aperture else 1e-6)
     args = tuple(jnp.asarray(a) for a in (image, depth, *LENS_ARGS))
     out, vjp = jax.vjp(f, *args)
     g_depth = np.asarray(vjp(jnp.ones_like(out))[1])
     assert np.all(np.isfinite(np.asarray(out))) and np.all(np.isfinite(g_depth))
     # pinned at infinity, at the focus plane (subgradient, dead zone) or clamped: exactly 0
     assert np.all(g_depth[0] == 0.0) and np.all(g_depth[2, :2] == 0.0)
-    if method != "aperture":
+    if not aperture:
         assert np.all(g_depth[1, :2] == 0.0)
 
 
@@ -405,7 +401,7 @@ def test_render_second_order_soft():
     # the area's fourth derivative grows like delta^(-5/2), and the central difference of the
     # first derivative (eps = 1e-6) carries eps^2 / 6 of it (measured: 2.6e-6 relative here).
     image, depth, inf_mask = _extreme_depths(3, 4, seed=1)
-    f = _render("soft", {}, inf_mask=inf_mask)
+    f = _render(inf_mask=inf_mask)
     check(f, (image, depth, *LENS_ARGS), order=2, jit=True, rtol=1e-5)
 
 
@@ -416,7 +412,7 @@ def test_render_degenerate_scenes(shape):
         image, depth = rng.uniform(size=(4, 5)), np.full((4, 5), 1.8)  # one depth plane
     else:
         image, depth = rng.uniform(size=shape), rng.uniform(1.5, 2.0, shape)
-    check(_render("soft", {}), (image, depth, *LENS_ARGS), jit=True)
+    check(_render(), (image, depth, *LENS_ARGS), jit=True)
 
 
 def _locally_constant(f, args):
@@ -438,7 +434,7 @@ def test_render_lens_extremes():
     enters linearly, so its gradient is checked on its own."""
     rng = np.random.default_rng(4)
     image, depth = rng.uniform(size=(4, 5)), rng.uniform(1.5, 6.0, (4, 5))
-    f = jax.jit(_render("soft", {}))
+    f = jax.jit(_render())
     for lens in [(0.05, 1e4, 3.0, 8.0), (0.05, 2.0, 0.05 * 1.001, 8.0)]:
         _locally_constant(lambda d, *lens: f(jnp.asarray(image), d, *lens), (depth, *lens))
     out = f(*(jnp.asarray(a) for a in (image, depth, 0.05, 1e4, 3.0, 8.0)))

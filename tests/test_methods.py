@@ -1,18 +1,35 @@
-"""The seeds' filter family behind `coc_filter(..., method=...)`: limits, energy, keys, knobs, gradients."""
+"""The seeds' filter family behind `coc_filter(..., method=...)`: method objects and their aliases,
+a method of the user's own, limits, energy, keys, options, gradients."""
 
 import functools
+import inspect
 import math
+from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from jaxdof import ThinLens, coc_filter, render
-from jaxdof._filters import layered, tabulated
+from jaxdof import (
+    AbstractMethod,
+    Aperture,
+    Auto,
+    Hard,
+    Jitter,
+    Layered,
+    Occlusion,
+    Soft,
+    Supersample,
+    ThinLens,
+    coc_filter,
+    coc_radius,
+    render,
+)
+from jaxdof._filters import METHOD_ALIASES, as_method, layered, tabulated
 from jaxdof._filters.auto import choose_method, max_layers
-from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS, KNOBS, METHODS
 from jaxdof._filters.common import tap_offsets, unique_with_index, window_half_width
 from jaxdof._filters.layered import (
     UNROLL_LEVELS,
@@ -23,7 +40,9 @@ from jaxdof._filters.layered import (
     sharp_first_level,
 )
 from jaxdof._filters.shape import unit_halfplanes
-from jaxdof._filters.tabulated import radius_levels, tabulated_filter
+from jaxdof._filters.tabulated import Tabulated, radius_levels, tabulated_filter
+
+from .helpers import CATALOGUE, method_id
 
 
 KEY = jax.random.key(0)
@@ -47,8 +66,120 @@ def _err(a, b):
     return float(np.abs(np.asarray(a) - np.asarray(b)).max())
 
 
-def test_tables_cover_every_method():
-    assert set(KNOBS) == set(METHODS) == set(DIFFERENTIABLE_IN_RADIUS)
+# --- methods are objects; strings are aliases of the default objects ---------------------------
+
+BUILT_IN = (Soft, Hard, Supersample, Jitter, Aperture, Layered, Occlusion, Auto)
+
+
+def test_aliases_are_the_catalogue():
+    assert METHOD_ALIASES == tuple(CATALOGUE)
+    assert {type(m) for m in CATALOGUE.values()} == set(BUILT_IN)
+
+
+@pytest.mark.parametrize("cls", [*BUILT_IN, Tabulated, layered._LayeredLevels])
+def test_every_method_is_an_equinox_module(cls):
+    """Built-in methods are final `eqx.Module` subclasses of `AbstractMethod` that say whether they
+    can drive a fit (a bool class variable)."""
+    assert issubclass(cls, AbstractMethod) and issubclass(cls, eqx.Module)
+    assert isinstance(cls.differentiable_in_radius, bool) and isinstance(cls.uses_depth, bool)
+    assert cls.uses_depth == (cls is Occlusion)
+
+
+@pytest.mark.parametrize("name", [n for n in METHOD_ALIASES if n != "jitter"])
+def test_alias_gives_the_default_object(name):
+    """A string is the class with its default options: the same object, the same image."""
+    method = as_method(name)
+    assert type(method) is type(CATALOGUE[name]) and method == type(method)()
+    image, radius = _scene(7, 8, 2.5)
+    np.testing.assert_array_equal(
+        coc_filter(image, radius, method=name), coc_filter(image, radius, method=type(method)())
+    )
+
+
+def test_as_method_refuses_what_is_not_a_method():
+    soft = Soft(blades=6)
+    assert as_method(soft) is soft
+    with pytest.raises(ValueError, match=r"jaxdof.Jitter\(key=jax.random.key\(0\)\)"):
+        as_method("jitter")  # the alias of a method that needs a key says how to give one
+    for bad in ("nope", "Soft"):
+        with pytest.raises(ValueError, match="is not a filter method.*'soft', 'hard'"):
+            as_method(bad)
+    # not even a string: the test run's jaxtyping hook refuses it at the signature (TypeError);
+    # without the hook, the same ValueError
+    for bad in (3, Soft):
+        with pytest.raises((TypeError, ValueError), match="method"):
+            as_method(bad)
+
+
+# --- a method of the user's own ----------------------------------------------------------------
+
+
+class GaussianBlur(AbstractMethod):
+    """A user's method: each source spread as a Gaussian of `sigma = r / 2` pixels, normalised over
+    the window (so energy is conserved), written as a dense scatter over the window's offsets.
+    Smooth in the radius, so a lens can be fitted through it."""
+
+    differentiable_in_radius: ClassVar[bool] = True
+
+    def __call__(self, image, radius, *, max_radius, depth=None):
+        w = math.ceil(max_radius)
+        h, wd, _ = image.shape
+        o = np.arange(-w, w + 1)
+        offsets = np.stack(np.meshgrid(o, o, indexing="ij"), -1).reshape(-1, 2)
+        sigma = jnp.maximum(radius, 1e-3) / 2  # r = 0 would be a delta: keep sigma > 0
+        d2 = jnp.asarray((offsets**2).sum(-1), radius.dtype)
+        weights = jax.nn.softmax(-d2[:, None, None] / (2 * sigma * sigma)[None], axis=0)
+        padded = jnp.pad(image[None] * weights[..., None], ((0, 0), (w, w), (w, w), (0, 0)))
+        out = jnp.zeros_like(image)
+        for k, (oy, ox) in enumerate(offsets):  # source q lands on q + o
+            out = out + padded[k, w - oy : w - oy + h, w - ox : w - ox + wd]
+        return out
+
+
+def _gaussian_reference(image, radius, max_radius):
+    """The same scatter written source by source in numpy."""
+    h, w, _ = image.shape
+    half = math.ceil(max_radius)
+    o = np.arange(-half, half + 1)
+    oy, ox = np.meshgrid(o, o, indexing="ij")
+    out = np.zeros_like(image)
+    for y, x in np.ndindex(h, w):
+        sigma = max(min(radius[y, x], max_radius), 1e-3) / 2
+        k = np.exp(-(oy**2 + ox**2) / (2 * sigma**2))
+        k /= k.sum()
+        for dy, dx in zip(oy.ravel(), ox.ravel()):
+            if 0 <= y + dy < h and 0 <= x + dx < w:
+                out[y + dy, x + dx] += image[y, x] * k[dy + half, dx + half]
+    return out
+
+
+def test_user_method_runs_through_coc_filter_render_jit_and_grad():
+    rng = np.random.default_rng(8)
+    image = rng.uniform(size=(7, 9, 2))
+    depth = rng.uniform(1.5, 5.0, (7, 9))
+    pitch = 0.05 / 800  # blur scale 4.1 px: circles of up to 2.7 px at these depths
+    lens = ThinLens(0.05, 2.0, 2.5, pitch)
+    radius = np.asarray(coc_radius(depth, lens))
+    method = GaussianBlur()
+    assert as_method(method) is method
+    out = coc_filter(image, radius, method=method, max_radius=3.0)
+    # the numpy reference sums the same terms in another order: float64 rounding
+    np.testing.assert_allclose(out, _gaussian_reference(image, radius, 3.0), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(
+        render(image, depth, lens, method=method, max_radius=3.0), out, rtol=0, atol=1e-14
+    )
+    jitted = jax.jit(lambda i, r: coc_filter(i, r, method=method, max_radius=3.0))(image, radius)
+    np.testing.assert_allclose(jitted, out, rtol=0, atol=1e-14)  # XLA may fuse it otherwise
+
+    def loss(f_number):
+        lens = ThinLens(0.05, f_number, 2.5, pitch)
+        return jnp.sum(render(image, depth, lens, method=method, max_radius=3.0) ** 2)
+
+    # smooth in the f-number (radii well inside the 3 px window): central differences with step
+    # 1e-6 in float64 are accurate to ~1e-10 relative; 1e-6 is ample
+    check_grads(jax.jit(loss), (2.0,), order=1, modes=("fwd", "rev"), eps=1e-6, rtol=1e-6)
+    # (the fit engineer adds `fit_lens(..., method=GaussianBlur())` here once the fit takes method
+    # objects: a user's method must drive a fit like a built-in one)
 
 
 # --- limits: the analytic overlap is the n -> infinity limit of supersampling and jitter ---------
@@ -58,8 +189,7 @@ def test_supersample_converges_to_soft():
     image, radius = _scene()
     soft = coc_filter(image, radius)
     errs = [
-        _err(coc_filter(image, radius, method="supersample", samples=n), soft)
-        for n in (2, 4, 8, 32)
+        _err(coc_filter(image, radius, method=Supersample(samples=n)), soft) for n in (2, 4, 8, 32)
     ]
     assert all(b < a for a, b in zip(errs, errs[1:])), errs
     # midpoint-rule coverage error is O(1/n) per crossed pixel: 16x more samples per axis should
@@ -73,8 +203,8 @@ def test_supersample_kernel_converges_like_one_over_n():
     image[10, 10] = 1.0
     radius = np.full((21, 21), 6.3)
     soft = coc_filter(image, radius)
-    e8 = _err(coc_filter(image, radius, method="supersample", samples=8), soft)
-    e64 = _err(coc_filter(image, radius, method="supersample", samples=64), soft)
+    e8 = _err(coc_filter(image, radius, method=Supersample(samples=8)), soft)
+    e64 = _err(coc_filter(image, radius, method=Supersample(samples=64)), soft)
     # the weight error of a pixel the circle crosses is <= (its arc's sub-cells) / n^2 / (pi r^2),
     # i.e. O(1/n); 8x more samples must give at least 4x less error (the rate, with slack for the
     # lattice's irregular phase against the circle)
@@ -120,7 +250,7 @@ def test_supersample_equals_a_brute_force_count(n):
     image, radius = _scene(9, 11, 3.4)
     radius[::4] = 0.4
     radius[1::3, ::2] = 2.0  # sub-sample centres exactly on the circle for even n
-    out = coc_filter(image, radius, method="supersample", samples=n, max_radius=3.4)
+    out = coc_filter(image, radius, method=Supersample(samples=n), max_radius=3.4)
     ref = _supersample_reference(image, radius, n, window_half_width(3.4))
     assert _err(out, ref) < 1e-14
 
@@ -130,8 +260,8 @@ def test_supersample_polygon_equals_a_brute_force_count(blades, rotation, n):
     """With blades every tap is counted by row ranges on the polygon's rows: the plain count."""
     image, radius = _scene(9, 11, 3.4, seed=5)
     radius[::4] = 0.4
-    knobs = {"samples": n, "blades": blades, "rotation": rotation}
-    out = coc_filter(image, radius, method="supersample", max_radius=3.4, **knobs)
+    method = Supersample(samples=n, blades=blades, rotation=rotation)
+    out = coc_filter(image, radius, method=method, max_radius=3.4)
     ref = _supersample_reference(image, radius, n, window_half_width(3.4), blades, rotation)
     assert _err(out, ref) < 1e-14
 
@@ -139,8 +269,8 @@ def test_supersample_polygon_equals_a_brute_force_count(blades, rotation, n):
 def test_supersample_with_one_sample_is_hard():
     image, radius = _scene()
     np.testing.assert_allclose(
-        coc_filter(image, radius, method="supersample", samples=1),
-        coc_filter(image, radius, method="hard"),
+        coc_filter(image, radius, method=Supersample(samples=1)),
+        coc_filter(image, radius, method=Hard()),
         rtol=0,
         atol=1e-14,  # the same integer counts, divided in a different order
     )
@@ -153,7 +283,7 @@ def test_jitter_converges_to_soft_and_is_unbiased():
     compiled = {
         n: jax.jit(
             lambda k, n=n: coc_filter(
-                image, radius, method="jitter", samples=n, key=k, max_radius=4.0
+                image, radius, method=Jitter(samples=n, key=k), max_radius=4.0
             )
         )
         for n in (4, 16, 256)
@@ -204,10 +334,11 @@ def test_jitter_equals_its_definition(samples, path, rmax):
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-14)
     # the public method (whichever path it picks: same counts) and a traced key, which builds the
     # thresholds at run time (a concrete one at compile time)
-    knobs = {"method": "jitter", "samples": samples, "max_radius": rmax}
-    public = coc_filter(image, radius, key=KEY, **knobs)
+    public = coc_filter(image, radius, method=Jitter(samples=samples, key=KEY), max_radius=rmax)
     np.testing.assert_allclose(public, out, rtol=1e-12)  # spans and dense round differently
-    traced = jax.jit(lambda k: coc_filter(image, radius, key=k, **knobs))
+    traced = jax.jit(
+        lambda k: coc_filter(image, radius, method=Jitter(samples=samples, key=k), max_radius=rmax)
+    )
     np.testing.assert_allclose(traced(KEY), public, rtol=1e-14, atol=1e-15)  # same hits; rounding
 
 
@@ -240,22 +371,23 @@ def test_spans_equal_the_dense_gather(method, counts, rmax):
 
 
 @pytest.mark.parametrize(
-    "method, knobs",
+    "method",
     [
-        ("hard", {}),
-        ("supersample", {"samples": 3}),
-        ("supersample", {"samples": 4, "blades": 5, "rotation": 0.3}),
-        ("soft", {"blades": 6, "rotation": 0.1}),
-        ("aperture", {"samples": 16}),
-        ("aperture", {"samples": 16, "pattern": "disc", "key": KEY}),
-        ("aperture", {"samples": 8, "pattern": "ring", "blades": 5}),
-        ("layered", {"layers": 3}),
-        ("auto", {}),
+        Hard(),
+        Supersample(samples=3),
+        Supersample(samples=4, blades=5, rotation=0.3),
+        Soft(blades=6, rotation=0.1),
+        Aperture(samples=16),
+        Aperture(samples=16, pattern="disc", key=KEY),
+        Aperture(samples=8, pattern="ring", blades=5),
+        Layered(layers=3),
+        Auto(),
     ],
+    ids=method_id,
 )
-def test_energy_conserved_exactly(method, knobs):
+def test_energy_conserved_exactly(method):
     image, radius = _interior_scene()
-    out = coc_filter(image, radius, method=method, max_radius=5.0, **knobs)
+    out = coc_filter(image, radius, method=method, max_radius=5.0)
     # every weight set sums to one by construction; 1e-12 leaves room for the float64 sums and FFT
     np.testing.assert_allclose(np.asarray(out).sum((0, 1)), image.sum((0, 1)), rtol=1e-12)
 
@@ -263,7 +395,7 @@ def test_energy_conserved_exactly(method, knobs):
 def test_jitter_energy_conserved_in_expectation_only():
     image, radius = _interior_scene()
     f = jax.jit(
-        lambda k: coc_filter(image, radius, method="jitter", samples=4, key=k, max_radius=5.0).sum()
+        lambda k: coc_filter(image, radius, method=Jitter(samples=4, key=k), max_radius=5.0).sum()
     )
     totals = np.array([float(f(k)) for k in jax.random.split(jax.random.key(2), 6)])
     rel = totals / image.sum() - 1
@@ -274,26 +406,19 @@ def test_jitter_energy_conserved_in_expectation_only():
 
 
 @pytest.mark.parametrize(
-    "method, knobs",
-    [
-        ("hard", {}),
-        ("supersample", {}),
-        ("jitter", {"key": KEY}),
-        ("layered", {}),
-        ("soft", {"blades": 5}),
-    ],
+    "method", [Hard(), Supersample(), Jitter(key=KEY), Layered(), Soft(blades=5)], ids=method_id
 )
-def test_identity_at_subpixel_radius(method, knobs):
+def test_identity_at_subpixel_radius(method):
     image, _ = _scene(9, 8)
     radius = np.random.default_rng(0).uniform(0, 0.5, (9, 8))
-    out = coc_filter(image, radius, method=method, max_radius=3.0, **knobs)
+    out = coc_filter(image, radius, method=method, max_radius=3.0)
     np.testing.assert_allclose(out, image, rtol=0, atol=1e-15)  # FFT rounding for layered
 
 
 def test_hard_spreads_evenly_over_covered_centres():
     image = np.zeros((7, 7))
     image[3, 3] = 1.0
-    out = np.asarray(coc_filter(image, np.full((7, 7), 1.0), method="hard"))
+    out = np.asarray(coc_filter(image, np.full((7, 7), 1.0), method=Hard()))
     expected = np.zeros((7, 7))
     expected[3, 2:5] = expected[2:5, 3] = 0.2  # centre + 4 neighbours at distance exactly 1
     np.testing.assert_array_equal(out, expected)
@@ -303,16 +428,17 @@ def test_hard_spreads_evenly_over_covered_centres():
 
 
 @pytest.mark.parametrize(
-    "method, knobs",
+    "make",
     [
-        ("jitter", {"samples": 4}),
-        ("aperture", {"pattern": "jittered", "samples": 8}),
-        ("aperture", {"pattern": "weighted_disc", "samples": 8}),
+        functools.partial(Jitter, samples=4),
+        functools.partial(Aperture, pattern="jittered", samples=8),
+        functools.partial(Aperture, pattern="weighted_disc", samples=8),
     ],
+    ids=["jitter", "aperture-jittered", "aperture-weighted_disc"],
 )
-def test_deterministic_for_a_key(method, knobs):
+def test_deterministic_for_a_key(make):
     image, radius = _scene(12, 13)
-    f = jax.jit(lambda k: coc_filter(image, radius, method=method, key=k, max_radius=5.0, **knobs))
+    f = jax.jit(lambda k: coc_filter(image, radius, method=make(key=k), max_radius=5.0))
     run = lambda k: np.asarray(f(k))
     np.testing.assert_array_equal(run(jax.random.key(7)), run(jax.random.key(7)))
     np.testing.assert_array_equal(run(jax.random.PRNGKey(7)), run(jax.random.PRNGKey(7)))
@@ -323,15 +449,14 @@ def test_deterministic_for_a_key(method, knobs):
 
 
 @pytest.mark.parametrize(
-    "method, knobs",
-    [("soft", {}), ("supersample", {"samples": 8}), ("aperture", {"samples": 256})],
+    "make",
+    [Soft, functools.partial(Supersample, samples=8), functools.partial(Aperture, samples=256)],
+    ids=["soft", "supersample", "aperture"],
 )
-def test_many_blades_approach_the_disc(method, knobs):
+def test_many_blades_approach_the_disc(make):
     image, radius = _scene(16, 16, 6.0)
-    disc = coc_filter(image, radius, method=method, **knobs)
-    errs = [
-        _err(coc_filter(image, radius, method=method, blades=b, **knobs), disc) for b in (5, 12, 96)
-    ]
+    disc = coc_filter(image, radius, method=make())
+    errs = [_err(coc_filter(image, radius, method=make(blades=b)), disc) for b in (5, 12, 96)]
     assert errs[0] > errs[1] > errs[2], errs
     # a b-gon inscribed in the circle misses a fraction ~ (2 pi^2 / 3) / b^2 of the disc's area:
     # 7e-4 at b = 96, so the outputs differ by a few 1e-4 of the image scale
@@ -344,7 +469,7 @@ def test_square_aperture_kernel_is_exact():
     image = np.zeros((9, 9))
     image[4, 4] = 1.0
     radius = np.full((9, 9), 2.5 * math.sqrt(2))
-    out = np.asarray(coc_filter(image, radius, blades=4, rotation=math.pi / 4))
+    out = np.asarray(coc_filter(image, radius, method=Soft(blades=4, rotation=math.pi / 4)))
     expected = np.zeros((9, 9))
     expected[2:7, 2:7] = 1 / 25
     np.testing.assert_allclose(out, expected, rtol=0, atol=1e-14)
@@ -354,7 +479,7 @@ def test_aperture_splat_has_the_discs_second_moment():
     image = np.zeros((25, 25))
     image[12, 12] = 1.0
     r = 6.3
-    out = np.asarray(coc_filter(image, np.full((25, 25), r), method="aperture", samples=4096))
+    out = np.asarray(coc_filter(image, np.full((25, 25), r), method=Aperture(samples=4096)))
     y, x = np.mgrid[0:25, 0:25] - 12.0
     assert abs((out * x).sum()) < 1e-3 and abs((out * y).sum()) < 1e-3  # centred
     # uniform disc: E[x^2] = r^2 / 4 per axis; the bilinear splat adds t(1 - t), 1/6 on average.
@@ -385,13 +510,13 @@ def _levels_scene(levels, h=26, w=28, seed=3):
 def test_layered_equals_soft_with_exactly_L_levels(jit, layered_path):
     image, radius = _levels_scene([0.0, 1.7, 3.25, 6.0])
     soft = coc_filter(image, radius)
-    f = lambda i, r: coc_filter(i, r, method="layered", layers=4, max_radius=6.0)
+    f = lambda i, r: coc_filter(i, r, method=Layered(layers=4), max_radius=6.0)
     out = jax.jit(f)(image, radius) if jit else f(image, radius)
     # The scatter has no occlusion, so layering is exact everywhere, depth edges included; what is
     # left is FFT rounding (a few 1e-16 of the image's sum in float64).
     assert _err(out, soft) < 1e-12
     # with fewer layers than levels, two levels share a kernel: no longer the soft filter
-    assert _err(coc_filter(image, radius, method="layered", layers=3), soft) > 1e-2
+    assert _err(coc_filter(image, radius, method=Layered(layers=3)), soft) > 1e-2
 
 
 def test_layered_scan_path_equals_soft(monkeypatch):
@@ -399,7 +524,7 @@ def test_layered_scan_path_equals_soft(monkeypatch):
     monkeypatch.setattr(layered, "FFT_LEVEL_COST_IN_TAPS", 0.0)  # the FFTs, whatever the cost
     radii = [0.0] + [1.0 + 0.5 * k for k in range(UNROLL_LEVELS + 2)]
     image, radius = _levels_scene(radii, 24, 23)
-    out = coc_filter(image, radius, method="layered", layers=len(radii), max_radius=radii[-1])
+    out = coc_filter(image, radius, method=Layered(layers=len(radii)), max_radius=radii[-1])
     assert _err(out, coc_filter(image, radius)) < 1e-12
 
 
@@ -418,7 +543,7 @@ def test_layered_level_radius_is_exact_in_float32(traced):
         assert np.array_equal(level_radii(radius, assignment, 4).astype(np.float32), values)
     # and the render: the soft filter's to float32 FFT rounding
     image = rng.uniform(size=(320, 320, 3)).astype(np.float32)
-    out = coc_filter(image, radius, method="auto", max_radius=8.0)
+    out = coc_filter(image, radius, method=Auto(), max_radius=8.0)
     assert choose_method(radius, max_radius=8.0) == "layered"
     assert _err(out, coc_filter(image, radius, max_radius=8.0)) < 2e-6
 
@@ -504,7 +629,7 @@ def test_layered_copies_the_sharp_level(layered_path):
     assert sharp_first_level(radius, assign_numpy(radius, 3))
     assert not sharp_first_level(radius, assign_numpy(radius, 1))  # one level mixes every radius
     assert not sharp_first_level(np.full_like(radius, 2.5), np.zeros(radius.shape, np.int32))
-    f = lambda i, r: coc_filter(i, r, method="layered", layers=3, max_radius=7.0)  # noqa: E731
+    f = lambda i, r: coc_filter(i, r, method=Layered(layers=3), max_radius=7.0)  # noqa: E731
     concrete, traced = f(image, radius), jax.jit(f)(image, radius)
     assert _err(concrete, traced) < 1e-12 and _err(concrete, coc_filter(image, radius)) < 1e-12
     # every pixel sharp: no convolution at all, the image itself
@@ -517,7 +642,7 @@ def test_layered_concrete_map_binned_equals_traced(layered_path):
     rng = np.random.default_rng(11)
     image = rng.uniform(size=(21, 19, 3))
     radius = np.where(rng.uniform(size=(21, 19)) < 0.3, 0.2, rng.uniform(1.0, 5.0, (21, 19)))
-    f = lambda i, r: coc_filter(i, r, method="layered", layers=4, max_radius=5.0)  # noqa: E731
+    f = lambda i, r: coc_filter(i, r, method=Layered(layers=4), max_radius=5.0)  # noqa: E731
     concrete, traced = f(image, radius), jax.jit(f)(image, radius)
     assert _err(concrete, traced) < 1e-12
     assert _err(concrete, coc_filter(image, radius)) > 1e-3  # binned: not the soft filter
@@ -526,7 +651,7 @@ def test_layered_concrete_map_binned_equals_traced(layered_path):
 def test_layered_float32_matches_soft(layered_path):
     image, radius = _levels_scene([0.0, 2.5, 7.0])
     image, radius = image.astype(np.float32), radius.astype(np.float32)
-    out = coc_filter(image, radius, method="layered", layers=3)
+    out = coc_filter(image, radius, method=Layered(layers=3))
     assert out.dtype == jnp.float32
     # float32 FFT over a 40 x 40 frame: rounding ~ eps * log(n) * max|image| ~ 1e-6
     assert _err(out, coc_filter(image, radius)) < 5e-6
@@ -538,7 +663,7 @@ def test_layered_keeps_sharp_pixels_sharp_when_binning(layered_path):
     image = rng.uniform(size=(20, 22, 3))
     sharp = rng.uniform(size=(20, 22)) < 0.4
     radius = np.where(sharp, 0.3, rng.uniform(1.0, 6.0, (20, 22)))
-    out = coc_filter(image, radius, method="layered", layers=3, max_radius=6.0)
+    out = coc_filter(image, radius, method=Layered(layers=3), max_radius=6.0)
     # a sharp pixel whose neighbours within 6 px are all sharp receives only its own light
     isolated = sharp.copy()
     for dy in range(-6, 7):
@@ -550,7 +675,7 @@ def test_layered_keeps_sharp_pixels_sharp_when_binning(layered_path):
     ref = coc_filter(src, np.where(sharp, 0.3, 0.0), max_radius=6.0)
     np.testing.assert_allclose(np.asarray(out)[isolated], np.asarray(ref)[isolated], atol=1e-12)
     # and a sharp pixel's own light is never spread: the layer of level 0 is the identity
-    only_sharp = coc_filter(src, radius, method="layered", layers=3, max_radius=6.0)
+    only_sharp = coc_filter(src, radius, method=Layered(layers=3), max_radius=6.0)
     np.testing.assert_allclose(only_sharp, src, atol=1e-12)
 
 
@@ -589,54 +714,80 @@ def test_auto_picks_what_the_scene_needs():
     assert choose_method(many) == "soft"
     for radius in (const, few, many, np.minimum(few, 3.0)):
         # always the soft filter's result, whatever it chose
-        assert _err(coc_filter(image, radius, method="auto"), coc_filter(image, radius)) < 1e-12
+        assert _err(coc_filter(image, radius, method=Auto()), coc_filter(image, radius)) < 1e-12
     # traced radius: the documented fallback to the soft gather
-    traced = jax.jit(lambda i, r: coc_filter(i, r, method="auto", max_radius=8.0))(image, few)
+    traced = jax.jit(lambda i, r: coc_filter(i, r, method=Auto(), max_radius=8.0))(image, few)
     assert _err(traced, coc_filter(image, few, max_radius=8.0)) < 1e-12
     # a concrete radius closed over inside jit is still inspected
-    closed = jax.jit(lambda i: coc_filter(i, few, method="auto", max_radius=8.0))(image)
+    closed = jax.jit(lambda i: coc_filter(i, few, method=Auto(), max_radius=8.0))(image)
     assert _err(closed, coc_filter(image, few)) < 1e-12
 
 
-def test_render_passes_knobs_and_auto_works_outside_jit():
+def test_render_passes_the_method_and_auto_works_outside_jit():
     lens = ThinLens(0.05, 2.0, 2.0, 2e-4)
     image = np.random.default_rng(0).uniform(size=(16, 18, 3))
     depth = np.where(np.arange(18)[None, :] < 9, 2.0, 4.0) + np.zeros((16, 1))
     soft = render(image, depth, lens)
-    assert _err(render(image, depth, lens, method="auto"), soft) < 1e-12
-    out = render(image, depth, lens, method="jitter", samples=4, key=KEY)
+    assert _err(render(image, depth, lens, method=Auto()), soft) < 1e-12
+    out = render(image, depth, lens, method=Jitter(samples=4, key=KEY))
     assert out.shape == image.shape and _err(out, soft) > 0
-    with pytest.raises(ValueError, match="layers"):
-        render(image, depth, lens, method="soft", layers=3)
+    # the options live in the method object: render has no keywords for them
+    with pytest.raises(TypeError, match="layers"):
+        render(image, depth, lens, method=Soft(), layers=3)
 
 
-# --- bad knobs -------------------------------------------------------------------------------------
+# --- bad options -----------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
-    "method, knobs, match",
+    "cls, options, match",
     [
-        ("soft", {"samples": 4}, "does not use samples"),
-        ("hard", {"key": KEY}, "does not use key"),
-        ("layered", {"blades": 6}, "does not use blades"),
-        ("supersample", {"pattern": "ring"}, "does not use pattern"),
-        ("auto", {"layers": 2}, "does not use layers"),
-        ("jitter", {}, "needs an explicit key"),
-        ("aperture", {"pattern": "disc"}, "needs an explicit key"),
-        ("aperture", {"key": KEY}, "does not use key"),
-        ("aperture", {"pattern": "spiral"}, "pattern='spiral'"),
-        ("supersample", {"samples": 0}, "samples must be"),
-        ("jitter", {"samples": True, "key": KEY}, "samples must be a Python int"),
-        ("soft", {"blades": 2}, "blades must be"),
-        ("soft", {"rotation": 0.5}, "rotation=0.5 has no effect"),
-        ("layered", {"layers": 0}, "layers must be"),
-        ("jitter", {"key": np.zeros(3, np.uint32)}, "key must be"),
+        (Jitter, {}, r"needs an explicit key: pass e.g. jaxdof.Jitter\(key=jax.random.key\(0\)\)"),
+        (Aperture, {"pattern": "disc"}, "needs an explicit key"),
+        (Aperture, {"key": KEY}, "does not use key"),
+        (Aperture, {"pattern": "spiral"}, "pattern='spiral'"),
+        (Aperture, {"samples": 0}, "samples must be"),
+        (Supersample, {"samples": 0}, "samples must be"),
+        (Supersample, {"samples": 65}, r"samples must be in \[1, 64\]"),
+        (Jitter, {"samples": True, "key": KEY}, "samples must be a Python int"),
+        (Soft, {"blades": 2}, "blades must be"),
+        (Soft, {"rotation": 0.5}, "rotation=0.5 has no effect"),
+        (Supersample, {"rotation": 0.5}, "rotation=0.5 has no effect"),
+        (Soft, {"blades": 5, "rotation": math.inf}, "rotation must be finite"),
+        (Layered, {"layers": 0}, "layers must be"),
+        (Occlusion, {"layers": 257}, "layers must be"),
+        (Jitter, {"key": np.zeros(3, np.uint32)}, "key must be"),
+        (Jitter, {"key": jax.random.split(KEY)}, "key must be a single PRNG key"),
     ],
 )
-def test_bad_knobs_rejected(method, knobs, match):
-    image, radius = _scene(6, 6)
+def test_bad_options_rejected(cls, options, match):
+    """A wrong value is a `ValueError` from the method's constructor, naming it and the fix."""
     with pytest.raises(ValueError, match=match):
-        coc_filter(image, radius, method=method, **knobs)
+        cls(**options)
+
+
+@pytest.mark.parametrize(
+    "cls, option",
+    [
+        (Soft, "samples"),
+        (Hard, "key"),
+        (Layered, "blades"),
+        (Supersample, "pattern"),
+        (Auto, "layers"),
+    ],
+)
+def test_options_a_method_does_not_have_are_rejected(cls, option):
+    """An option the method does not take is not silently ignored: Python names it."""
+    with pytest.raises(TypeError, match=f"unexpected keyword argument '{option}'"):
+        cls(**{option: 2})
+
+
+def test_options_are_keyword_only_fields():
+    for cls in BUILT_IN:
+        params = list(inspect.signature(cls).parameters.values())
+        assert all(p.kind == p.KEYWORD_ONLY for p in params), cls
+    # a rotation is ignored on a disc only when zero; the aperture's lattice turns with it
+    assert Soft(rotation=0.0) == Soft() and Aperture(rotation=0.5).rotation == 0.5
 
 
 # --- gradients -------------------------------------------------------------------------------------
@@ -647,29 +798,29 @@ _GRAD_IMAGE = np.random.default_rng(6).uniform(size=(6, 7))
 
 
 @pytest.mark.parametrize(
-    "method, knobs",
+    "method",
     [
-        ("hard", {}),
-        ("supersample", {"samples": 3}),
-        ("jitter", {"samples": 4, "key": KEY}),
-        ("layered", {"layers": 3}),
-        ("aperture", {"samples": 8}),
-        ("soft", {"blades": 5, "rotation": 0.2}),
+        Hard(),
+        Supersample(samples=3),
+        Jitter(samples=4, key=KEY),
+        Layered(layers=3),
+        Aperture(samples=8),
+        Soft(blades=5, rotation=0.2),
     ],
+    ids=method_id,
 )
-def test_gradients_wrt_image(method, knobs):
-    f = jax.jit(lambda img: coc_filter(img, _GRAD_RADIUS, method=method, max_radius=3.0, **knobs))
+def test_gradients_wrt_image(method):
+    f = jax.jit(lambda img: coc_filter(img, _GRAD_RADIUS, method=method, max_radius=3.0))
     # linear in the image: finite differences are exact up to rounding; eps = 1e-3 in float64
     check_grads(f, (_GRAD_IMAGE,), order=1, modes=("fwd", "rev"), eps=1e-3, atol=1e-8, rtol=1e-8)
 
 
 @pytest.mark.parametrize(
-    "method, knobs",
-    [("aperture", {"samples": 8}), ("soft", {"blades": 5, "rotation": 0.2}), ("auto", {})],
+    "method", [Aperture(samples=8), Soft(blades=5, rotation=0.2), Auto()], ids=method_id
 )
-def test_gradients_wrt_radius(method, knobs):
-    assert DIFFERENTIABLE_IN_RADIUS[method]
-    f = jax.jit(lambda r: coc_filter(_GRAD_IMAGE, r, method=method, max_radius=3.0, **knobs))
+def test_gradients_wrt_radius(method):
+    assert method.differentiable_in_radius
+    f = jax.jit(lambda r: coc_filter(_GRAD_IMAGE, r, method=method, max_radius=3.0))
     # Piecewise smooth in r (bilinear splats / polygon clipping): a step of 1e-6 px almost never
     # crosses a kink at these random radii; central differences then have error ~eps^2 * f'''
     # plus rounding 1e-16 / 1e-6, so 1e-6 relative is ample.
@@ -677,12 +828,11 @@ def test_gradients_wrt_radius(method, knobs):
 
 
 @pytest.mark.parametrize(
-    "method, knobs",
-    [("hard", {}), ("supersample", {"samples": 3}), ("jitter", {"samples": 4, "key": KEY})],
+    "method", [Hard(), Supersample(samples=3), Jitter(samples=4, key=KEY)], ids=method_id
 )
-def test_no_gradient_wrt_radius_is_zero_not_noise(method, knobs):
-    assert not DIFFERENTIABLE_IN_RADIUS[method]
-    g = jax.grad(lambda r: coc_filter(_GRAD_IMAGE, r, method=method, max_radius=3.0, **knobs).sum())
+def test_no_gradient_wrt_radius_is_zero_not_noise(method):
+    assert not method.differentiable_in_radius
+    g = jax.grad(lambda r: coc_filter(_GRAD_IMAGE, r, method=method, max_radius=3.0).sum())
     assert np.array_equal(np.asarray(g(_GRAD_RADIUS)), np.zeros_like(_GRAD_RADIUS))
 
 
@@ -692,19 +842,19 @@ def test_layered_radius_gradient_is_exact_for_depth_planes(layered_path):
     mask = (radius == 3.2).astype(float)
 
     def directional(method):
-        knobs = {"layers": 3} if method == "layered" else {}
-        f = lambda t: coc_filter(image, radius + t * mask, method=method, max_radius=4.0, **knobs)
+        f = lambda t: coc_filter(image, radius + t * mask, method=method, max_radius=4.0)
         return jax.jit(lambda t: jax.jvp(f, (t,), (1.0,))[1])(0.0)
 
     # the same analytic derivative; FFT rounding aside
-    assert _err(directional("layered"), directional("soft")) < 1e-10
+    assert _err(directional(Layered(layers=3)), directional(Soft())) < 1e-10
 
 
-@pytest.mark.parametrize("method", [m for m in METHODS if m != "auto"])
+@pytest.mark.parametrize(
+    "method", [m for name, m in CATALOGUE.items() if name != "auto"], ids=method_id
+)
 def test_float32_in_float32_out(method, float32):
     image, radius = _scene(10, 11)
-    knobs = {"key": KEY} if method == "jitter" else {}
-    out = coc_filter(image.astype(np.float32), radius.astype(np.float32), method=method, **knobs)
+    out = coc_filter(image.astype(np.float32), radius.astype(np.float32), method=method)
     assert out.dtype == jnp.float32 and out.shape == image.shape
     assert np.all(np.isfinite(np.asarray(out)))
 

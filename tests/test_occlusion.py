@@ -1,4 +1,4 @@
-"""The occlusion-aware filter (`method="occlusion"`, `jaxdof/_filters/occlusion.py`)."""
+"""The occlusion-aware filter (`jaxdof.Occlusion`, `jaxdof/_filters/occlusion.py`)."""
 
 from __future__ import annotations
 
@@ -11,11 +11,12 @@ import pytest
 from jax.test_util import check_grads
 from scipy.ndimage import distance_transform_edt
 
-from jaxdof import ThinLens, coc_filter, coc_radius, render
+from jaxdof import Occlusion, ThinLens, coc_filter, coc_radius, render
+from jaxdof._filters.common import check_bool
 from jaxdof._filters.occlusion import depth_layers, nearest_seed
 
 
-# One small frame and one window for every test, and jitted entry points with the knobs static,
+# One small frame and one window for every test, and jitted entry points with the options static,
 # so that the few compilations are shared between tests (compiling dominates their cost).
 H, W = 14, 16
 MAXR = 3.0
@@ -25,7 +26,7 @@ IMAGE = RNG.uniform(0.1, 1.0, (H, W, 3))
 
 @functools.partial(jax.jit, static_argnames=("fill",))
 def _occ(image, radius, depth, fill=True):
-    return coc_filter(image, radius, method="occlusion", depth=depth, max_radius=MAXR, fill=fill)
+    return coc_filter(image, radius, method=Occlusion(fill=fill), depth=depth, max_radius=MAXR)
 
 
 @jax.jit
@@ -60,7 +61,7 @@ def test_one_depth_or_smooth_depth_is_the_soft_filter(fill):
         out = occ(IMAGE, radius, depth, fill=fill)
         np.testing.assert_array_equal(np.asarray(out), np.asarray(soft))
     # no depth at all: one layer too
-    out = jax.jit(lambda i, r: coc_filter(i, r, method="occlusion", max_radius=MAXR))(IMAGE, radius)
+    out = jax.jit(lambda i, r: coc_filter(i, r, method=Occlusion(), max_radius=MAXR))(IMAGE, radius)
     np.testing.assert_array_equal(np.asarray(out), np.asarray(soft))
 
 
@@ -148,7 +149,7 @@ def _grad_scene():
 def test_gradients_image_and_radius():
     image, radius, depth = _grad_scene()
     f = jax.jit(
-        lambda i, r: coc_filter(i, r, method="occlusion", depth=depth, max_radius=2.5, layers=2)
+        lambda i, r: coc_filter(i, r, method=Occlusion(layers=2), depth=depth, max_radius=2.5)
     )
     # float64. Linear in the image; in the radius a product of smooth soft weights, and the only
     # kinks (the clip of 1 - alpha at 0 and 1; r = 1/2, r = max_radius) are far from these radii,
@@ -162,8 +163,7 @@ def test_no_gradient_through_the_depth_order():
     g = jax.jit(
         jax.grad(
             lambda z: jnp.sum(
-                coc_filter(image, radius, method="occlusion", depth=z, max_radius=2.5, layers=2)
-                ** 2
+                coc_filter(image, radius, method=Occlusion(layers=2), depth=z, max_radius=2.5) ** 2
             )
         )
     )(jnp.asarray(depth))
@@ -176,7 +176,7 @@ def test_render_gradient_in_depth_and_lens_through_the_radius():
 
     def f(z, n):
         lens = ThinLens(0.05, n, 2.0, pitch)
-        return render(image, z, lens, method="occlusion", max_radius=2.5, layers=2)
+        return render(image, z, lens, method=Occlusion(layers=2), max_radius=2.5)
 
     r = coc_radius(depth, ThinLens(0.05, 2.0, 2.0, pitch))
     assert float(jnp.min(r)) > 0.6 and float(jnp.max(r)) < 2.5  # off the kinks at 1/2 and 2.5
@@ -190,14 +190,14 @@ def test_render_passes_its_depth():
     lens = ThinLens(0.05, 5.6, 2.0, 0.05 / 1000)  # circles of 2.3 px (1 m) and 1.1 px (4 m)
     radius = np.asarray(coc_radius(depth, lens))
     assert radius.max() < MAXR
-    a = jax.jit(lambda i, z: render(i, z, lens, method="occlusion", max_radius=MAXR))(IMAGE, depth)
+    a = jax.jit(lambda i, z: render(i, z, lens, method=Occlusion(), max_radius=MAXR))(IMAGE, depth)
     np.testing.assert_allclose(np.asarray(a), np.asarray(occ(IMAGE, radius, depth)), atol=1e-13)
     assert not np.allclose(np.asarray(a), np.asarray(_soft(IMAGE, radius)))
 
 
 def test_jit_and_vmap():
     depth, radius = two_depths(2.2, 1.3)
-    eager = coc_filter(IMAGE, radius, method="occlusion", depth=depth, max_radius=MAXR)
+    eager = coc_filter(IMAGE, radius, method=Occlusion(), depth=depth, max_radius=MAXR)
     np.testing.assert_allclose(np.asarray(occ(IMAGE, radius, depth)), eager, rtol=0, atol=1e-13)
     images = np.stack([IMAGE, IMAGE[::-1]])
     depths = np.stack([depth, depth[:, ::-1]])
@@ -214,14 +214,17 @@ def test_float32(float32):
     assert out.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(out)))
 
 
-def test_bad_knobs():
-    from jaxdof._filters.coc_filter import _check_knobs
-
+def test_bad_options():
     depth, radius = two_depths(1.0, 2.0)
-    # (the jaxtyping hook refuses a non-bool `fill` at the public signature already)
+    # the jaxtyping hook of the test run refuses a non-bool `fill` at the signature already
+    # (TypeError); without it, the method's own check (ValueError). The check itself:
+    with pytest.raises((TypeError, ValueError), match="fill"):
+        Occlusion(fill=1)
     with pytest.raises(ValueError, match="fill must be a Python bool"):
-        _check_knobs("occlusion", {"depth": depth, "fill": 1, "layers": None})
+        check_bool("fill", 1)
+    with pytest.raises(ValueError, match="layers must be in"):
+        Occlusion(layers=0)
     with pytest.raises(ValueError, match="depth must be a floating-point"):
-        coc_filter(IMAGE, radius, method="occlusion", depth=depth[:, :-1], max_radius=MAXR)
+        coc_filter(IMAGE, radius, method=Occlusion(), depth=depth[:, :-1], max_radius=MAXR)
     with pytest.raises(ValueError, match="does not use depth"):
         coc_filter(IMAGE, radius, depth=depth, max_radius=MAXR)

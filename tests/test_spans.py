@@ -183,7 +183,7 @@ def test_jit_and_vmap_equal_eager():
 
 
 def test_coc_filter_dispatch(monkeypatch):
-    """`method="soft"` takes the span path from `SPANS_MIN_RADIUS` on, the dense gather below."""
+    """`Soft()` takes the span path from `SPANS_MIN_RADIUS` on, the dense gather below."""
     calls = []
     real = spans.spans_filter
 

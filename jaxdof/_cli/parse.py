@@ -18,13 +18,21 @@ _LENGTH = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(mm|cm|
 
 
 def method_names() -> tuple[str, ...]:
-    """The names `--method` accepts: the library's string aliases of its filter methods.
+    """The names `--method` accepts: the library's string aliases of its filter methods that run
+    in their default configuration (`jitter` needs a random key, which the CLI does not take).
 
     The one place the CLI learns them (`render` and `fit_lens` take the alias as `method=`).
     """
-    from .._filters.coc_filter import METHODS  # to become `METHOD_ALIASES` (method objects)
+    from .._filters import METHOD_ALIASES, as_method
 
-    return tuple(METHODS)
+    def runs_by_default(name: str) -> bool:
+        try:
+            as_method(name)
+        except ValueError:
+            return False
+        return True
+
+    return tuple(n for n in METHOD_ALIASES if runs_by_default(n))
 
 
 class Parser(argparse.ArgumentParser):

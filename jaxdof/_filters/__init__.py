@@ -1,6 +1,11 @@
-from .auto import choose_method as choose_method
-from .coc_filter import (
-    DIFFERENTIABLE_IN_RADIUS as DIFFERENTIABLE_IN_RADIUS,
-    METHODS as METHODS,
-    coc_filter as coc_filter,
-)
+from .aliases import METHOD_ALIASES as METHOD_ALIASES, as_method as as_method
+from .aperture import Aperture as Aperture
+from .auto import Auto as Auto, choose_method as choose_method
+from .base import AbstractMethod as AbstractMethod
+from .coc_filter import coc_filter as coc_filter
+from .hard import Hard as Hard
+from .jitter import Jitter as Jitter
+from .layered import Layered as Layered
+from .occlusion import Occlusion as Occlusion
+from .soft_method import Soft as Soft
+from .supersample import Supersample as Supersample

@@ -1,48 +1,18 @@
-r"""The accumulation buffer: average `N` views with the lens moved over the aperture.
-
-The OpenGL wikibook / Red Book method for an image plus depth: moving the eye by `u` (in units of
-the aperture radius) while keeping the focus plane fixed shifts the point at depth `d` by `u r`
-pixels, with `r` its circle-of-confusion radius. So every view is the image with each pixel
-forward-splatted to `q + u_k r_q`, bilinearly (differentiable in the position), and
-
-$$\text{out} = \frac{1}{N}\sum_{k=1}^{N} \operatorname{splat}(\text{image},\ q + u_k\, r_q).$$
-
-Cost is `O(N)` image passes, independent of the radius; the bokeh is made of `N` bilinear dots, so
-large circles need many samples (the 2006 paper's objection). Each splat conserves energy exactly.
-
-Lens-sample patterns (`u_k` in the unit aperture; disc or the inscribed polygon of `blades`, both
-through the area-preserving map of `shape.map_to_aperture` from `(s, t)` in `[0, 1]^2`):
-
-- `"ring"`: the wikibook's `N` points equally spaced on the rim (`s = 1`): a ring-shaped bokeh,
-  not a disc; it does not converge to the soft filter.
-- `"stratified"` (default): deterministic golden-angle (Vogel) lattice, `s = (k + 1/2)/N`,
-  `t = frac(k (sqrt5 - 1)/2)`: evenly spread over the disc for any `N`.
-- `"jittered"`: the same lattice, each point moved at random inside its ring of area `1/N`, and the
-  whole pattern rotated at random (needs `key`).
-- `"disc"`: `N` independent uniform points in the aperture (needs `key`).
-- `"weighted_disc"`: random points with density `proportional to 1 - rho^2` (the applet's radial
-  falloff; needs `key`): a deliberately softer, centre-weighted bokeh, not the uniform disc.
-
-Uniform patterns (`stratified`, `jittered`, `disc`) converge as `N -> infinity` to the disc (or
-polygon) **convolved with the bilinear splat's tent**: the average of `tent(p - q - u r)` over `u` in
-the disc is `(disc * box * box)(p - q)`, while the soft filter is `(disc * box)(p - q)` (the exact
-pixel coverage). So this method keeps one extra pixel-box blur (variance `1/12` px^2 per axis) and
-an error floor against `"soft"` that more samples do not remove; a nearest-pixel splat would converge
-to `"soft"` exactly but has no gradient in the radius.
-
-**Gradients:** exact for this forward model, in `image` and `radius` (positions move linearly with
-`r`, bilinear weights are piecewise linear): `DIFFERENTIABLE_IN_RADIUS["aperture"]` is `True`.
-"""
+"""`Aperture`: the accumulation buffer, an average of views from points across the aperture."""
 
 from __future__ import annotations
 
 import math
+from typing import ClassVar, final
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from .base import AbstractMethod
+from .common import check_blades, check_int, check_key, check_rotation
 from .shape import map_to_aperture
 
 
@@ -124,3 +94,112 @@ def aperture_filter(
         + canvas[pad - 1 : pad + h - 1, pad - 1 : pad + w - 1, 3]
     )
     return out / samples
+
+
+@final
+class Aperture(AbstractMethod):
+    r"""The accumulation buffer: average `N` views with the lens moved over the aperture.
+
+    The OpenGL wikibook / Red Book method for an image plus depth: moving the eye by `u` (in units
+    of the aperture radius) while keeping the focus plane fixed shifts the point at depth `d` by
+    `u r` pixels, with `r` its circle-of-confusion radius. So every view is the image with each
+    pixel forward-splatted to `q + u_k r_q`, bilinearly (differentiable in the position), and
+
+    $$\text{out} = \frac{1}{N}\sum_{k=1}^{N} \operatorname{splat}(\text{image},\ q + u_k\, r_q).$$
+
+    Cost is `O(N)` image passes, independent of the radius; the bokeh is made of `N` bilinear dots,
+    so large circles need many samples (the 2006 paper's objection). Each splat conserves energy
+    exactly. Unlike the other methods, radii `<= 1/2` are not exactly the identity: the bilinear
+    splat of a sub-pixel shift blurs slightly.
+
+    Lens-sample patterns (`u_k` in the unit aperture; disc or the inscribed polygon of `blades`,
+    both through the area-preserving map of `shape.map_to_aperture` from `(s, t)` in `[0, 1]^2`):
+
+    - `"ring"`: the wikibook's `N` points equally spaced on the rim (`s = 1`): a ring-shaped
+      bokeh, not a disc; it does not converge to the soft filter.
+    - `"stratified"` (default): deterministic golden-angle (Vogel) lattice, `s = (k + 1/2)/N`,
+      `t = frac(k (sqrt5 - 1)/2)`: evenly spread over the disc for any `N`.
+    - `"jittered"`: the same lattice, each point moved at random inside its ring of area `1/N`,
+      and the whole pattern rotated at random (needs `key`).
+    - `"disc"`: `N` independent uniform points in the aperture (needs `key`).
+    - `"weighted_disc"`: random points with density `proportional to 1 - rho^2` (the applet's
+      radial falloff; needs `key`): a deliberately softer, centre-weighted bokeh, not the uniform
+      disc.
+
+    Uniform patterns (`stratified`, `jittered`, `disc`) converge as `N -> infinity` to the disc (or
+    polygon) **convolved with the bilinear splat's tent**: the average of `tent(p - q - u r)` over
+    `u` in the disc is `(disc * box * box)(p - q)`, while the soft filter is `(disc * box)(p - q)`
+    (the exact pixel coverage). So this method keeps one extra pixel-box blur (variance `1/12` px^2
+    per axis) and an error floor against `Soft` that more samples do not remove; a nearest-pixel
+    splat would converge to `Soft` exactly but has no gradient in the radius.
+
+    **Fields:**
+
+    - `samples`: `N`, the lens samples (views), an int `>= 1` (default 64).
+    - `pattern`: one of the patterns above (default `"stratified"`).
+    - `key`: the `jax.random` key of a random pattern (required for those, refused for the
+      deterministic `"ring"` and `"stratified"`); an array leaf.
+    - `blades`: `None` (a circular aperture, the default) or the number of diaphragm blades, an
+      int in `[3, 1024]`: the regular polygon inscribed in the circle of confusion (see `Soft`).
+    - `rotation`: the orientation of the pattern in radians (default 0): of the polygon with
+      `blades`, of the lattice's angles on the disc.
+
+    **Gradients:** exact for this forward model, in `image` and `radius` (positions move linearly
+    with `r`, bilinear weights are piecewise linear): `differentiable_in_radius = True`.
+    """
+
+    samples: int = eqx.field(static=True)
+    pattern: str = eqx.field(static=True)
+    key: PRNGKeyArray | None
+    blades: int | None = eqx.field(static=True)
+    rotation: float = eqx.field(static=True)
+
+    differentiable_in_radius: ClassVar[bool] = True
+
+    def __init__(
+        self,
+        *,
+        samples: int = 64,
+        pattern: str = "stratified",
+        key: ArrayLike | None = None,
+        blades: int | None = None,
+        rotation: float = 0.0,
+    ):
+        self.samples = check_int("samples", samples, 1)
+        if pattern not in PATTERNS:
+            raise ValueError(f"pattern={pattern!r} is not one of {PATTERNS}")
+        self.pattern = pattern
+        if pattern in RANDOM_PATTERNS:
+            what = f"Aperture(pattern={pattern!r})"
+            how = f"jaxdof.Aperture(pattern={pattern!r}, key=jax.random.key(0))"
+            self.key = check_key(key, what, how)
+        elif key is not None:
+            raise ValueError(
+                f"pattern={pattern!r} is deterministic and does not use key; drop it or use one "
+                f"of the random patterns {RANDOM_PATTERNS}"
+            )
+        else:
+            self.key = None
+        self.blades = check_blades(blades)
+        # the lattice's angles turn with `rotation` on the disc too: never refused here
+        self.rotation = check_rotation(rotation, self.blades, "")
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        del depth
+        return aperture_filter(
+            image,
+            radius,
+            max_radius=max_radius,
+            samples=self.samples,
+            pattern=self.pattern,
+            key=self.key,
+            blades=self.blades,
+            rotation=self.rotation,
+        )

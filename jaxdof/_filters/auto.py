@@ -1,31 +1,18 @@
-r"""`"auto"`: model only what the scene needs, chosen from the concrete radius map.
-
-Let `L` be the number of distinct radii (all radii `<= 1/2` count as one level, the identity) and
-`T` the number of taps of the window. Every choice gives the soft filter's result (to float
-rounding), so `"auto"` is a speed choice, never an accuracy one:
-
-- **layered** (FFT): one convolution per level with the soft disc kernel, one FFT per level that
-  blurs (the level of radii `<= 1/2` is copied) whatever the radius; chosen when those levels
-  number at most `T / LAYER_COST_IN_TAPS`, i.e. few levels and a large window. With `L = 1` this
-  is a single convolution (reported as `"convolution"`).
-- **tabulated**: the soft gather with the `L` distinct weights per offset computed once and looked
-  up (`tabulated.py`), the cost of a gather with constant weights; chosen otherwise while the
-  table is small against the image (`L <= H W / 8`).
-- **soft**: the gather computing each weight (smoothly varying depth: every pixel its own radius).
-
-The choice needs concrete radii: under `jit`/`vmap`/`grad` with a traced radius map `"auto"` falls
-back to `"soft"` (documented, not an error, so that `render(..., method="auto")` can sit inside a
-traced fit). The choice is logged at INFO level on the `"jaxdof"` logger and returned by
-`choose_method`.
-"""
+"""`Auto`: model only what the scene needs, chosen from the concrete radius map (see `Auto`)."""
 
 from __future__ import annotations
 
 import logging
+from typing import ClassVar, final
 
 import numpy as np
+from jaxtyping import Array, Float
 
+from .base import AbstractMethod
 from .common import is_concrete, tap_offsets
+from .layered import Layered
+from .soft_method import Soft
+from .tabulated import Tabulated, radius_levels
 
 
 logger = logging.getLogger("jaxdof")
@@ -54,7 +41,7 @@ def distinct_levels(radius) -> int:
 
 
 def choose_method(radius, *, max_radius: float | None = None) -> str:
-    """What `method="auto"` does with this radius map.
+    """What `Auto()` does with this radius map.
 
     **Arguments:**
 
@@ -76,3 +63,57 @@ def choose_method(radius, *, max_radius: float | None = None) -> str:
     if blurred <= max_layers(max_radius):
         return "convolution" if n == 1 else "layered"
     return "tabulated" if n <= max(1.0, r.size * TABLE_LEVELS_PER_PIXEL) else "soft"
+
+
+@final
+class Auto(AbstractMethod):
+    r"""Model only what the scene needs, chosen from the concrete radius map: `Soft`'s numbers.
+
+    Let `L` be the number of distinct radii (all radii `<= 1/2` count as one level, the identity)
+    and `T` the number of taps of the window. Every choice gives the soft filter's result (to float
+    rounding), so `Auto` is a speed choice, never an accuracy one:
+
+    - **layered** (FFT, `Layered`): one convolution per level with the soft disc kernel, one FFT
+      per level that blurs (the level of radii `<= 1/2` is copied) whatever the radius; chosen when
+      those levels number at most `T / LAYER_COST_IN_TAPS`, i.e. few levels and a large window.
+      With `L = 1` this is a single convolution (reported as `"convolution"`).
+    - **tabulated**: the soft gather with the `L` distinct weights per offset computed once and
+      looked up (`jaxdof/_filters/tabulated.py`), the cost of a gather with constant weights;
+      chosen otherwise while the table is small against the image (`L <= H W / 8`).
+    - **soft** (`Soft`): the gather computing each weight (smoothly varying depth: every pixel its
+      own radius).
+
+    The choice needs concrete radii (`Auto.prepare`, called by `jaxdof.coc_filter` on a concrete
+    map): under `jit`/`vmap`/`grad` with a traced radius map `Auto` falls back to `Soft`
+    (documented, not an error, so that `render(..., method=Auto())` can sit inside a traced fit).
+    The choice is logged at INFO level on the `"jaxdof"` logger and returned by
+    `jaxdof.choose_method`. No options; `differentiable_in_radius = True` (a traced radius map
+    makes it `Soft`).
+    """
+
+    differentiable_in_radius: ClassVar[bool] = True
+
+    def prepare(self, radius: np.ndarray, max_radius: float) -> AbstractMethod:
+        """The method `choose_method` picks for this concrete map, itself prepared."""
+        choice = choose_method(radius, max_radius=max_radius)
+        logger.info("coc_filter(method=Auto()) chose %r", choice)
+        if choice == "soft":
+            return Soft()
+        if choice == "tabulated":
+            levels, index = radius_levels(radius)
+            return Tabulated(levels=levels, index=index)
+        layers = 1 if choice == "convolution" else distinct_levels(radius)
+        return Layered(layers=layers).prepare(radius, max_radius)
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        """A traced radius map (`prepare` was not called): the documented fallback to `Soft`."""
+        del depth
+        logger.info("coc_filter(method=Auto()): the radius map is traced, using Soft()")
+        return Soft()(image, radius, max_radius=max_radius)

@@ -36,9 +36,14 @@ class AbstractMethod(eqx.Module):
       Not called when the radius is traced (under `jit`/`grad`), so `__call__` must work without it.
     - `__call__(image, radius, *, max_radius, depth)`: the filter, on `image` `(H, W, C)` and
       `radius` `(H, W)` (pixels, already clamped to `max_radius`), returning `(H, W, C)`. It must be
-      a pure JAX function of its array arguments (jit, vmap, grad).
+      a pure JAX function of its array arguments (jit, vmap, grad). `depth` (`(H, W)`) is passed
+      only to a method with `uses_depth`.
 
-    Checks of the options belong in `__check_init__` (`ValueError` naming the option and the fix).
+    Options are fields: arrays (a random key) as leaves, Python ints and strings that shape the
+    computation as `eqx.field(static=True)`. Checks of the options belong in `__check_init__` or
+    `__init__` (`ValueError` naming the option and the fix). `jaxdof.coc_filter`, `jaxdof.render`
+    and `jaxdof.render_batch` take an instance, or a built-in's name (`as_method`: `"soft"` is
+    `Soft()`).
     """
 
     differentiable_in_radius: ClassVar[bool]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import operator
 
 import equinox as eqx
 import jax
@@ -110,6 +111,17 @@ def check_image_and_radius(image, radius) -> tuple[Array, Array, bool]:
     return image.astype(dtype), radius.astype(dtype), was_2d
 
 
+def check_depth_map(depth, shape: tuple[int, int]) -> Array:
+    """`depth` as a floating-point `(H, W)` array for a method that reads it; `ValueError` else."""
+    depth = jnp.asarray(depth)
+    if depth.shape != tuple(shape) or not jnp.issubdtype(depth.dtype, jnp.floating):
+        raise ValueError(
+            f"depth must be a floating-point (H, W) = {tuple(shape)} map (z-depth, e.g. metres), "
+            f"got shape {depth.shape} and dtype {depth.dtype}"
+        )
+    return depth
+
+
 # Up to this many distinct values the index map is built by one comparison pass per value: 1-2 ms on
 # a 1024^2 map of three levels (CPU), where `np.unique(..., return_inverse=True)` (an argsort) took
 # 20 ms and `np.searchsorted` 8 ms; beyond it the argsort.
@@ -132,3 +144,74 @@ def level_index(values: np.ndarray, uniq: np.ndarray) -> np.ndarray:
     for v in uniq[:-1]:  # a value's position = how many distinct values lie below it
         index += values > v
     return index
+
+
+# Checks of the methods' options (shared by the method classes): `ValueError`s that name the option
+# and say what it must be.
+
+
+def check_int(name: str, value, lo: int, hi: int | None = None) -> int:
+    """`value` as a Python int in `[lo, hi]` (`hi=None`: no upper bound); bools are refused."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        value = operator.index(value)
+    except TypeError:
+        raise ValueError(f"{name} must be a Python int, got {value!r}") from None
+    if value < lo or (hi is not None and value > hi):
+        bound = f">= {lo}" if hi is None else f"in [{lo}, {hi}]"
+        raise ValueError(f"{name} must be {bound}, got {value}")
+    return value
+
+
+def check_blades(blades) -> int | None:
+    """The number of diaphragm blades: `None` (a circular aperture) or an int in `[3, 1024]`."""
+    return None if blades is None else check_int("blades", blades, 3, 1024)
+
+
+def check_rotation(rotation, blades: int | None, owner: str) -> float:
+    """The diaphragm's rotation (radians) as a static finite float.
+
+    `owner` (e.g. `"Soft"`) names a method whose disc has no orientation: there a non-zero
+    rotation without `blades` is refused, since it would silently do nothing.
+    """
+    if isinstance(rotation, jax.Array) and not is_concrete(rotation):
+        raise ValueError("rotation must be a static Python number (radians), not a traced array")
+    rotation = float(rotation)
+    if not math.isfinite(rotation):
+        raise ValueError(f"rotation must be finite (radians), got {rotation}")
+    if rotation != 0 and blades is None and owner:
+        raise ValueError(
+            f"rotation={rotation} has no effect on a circular aperture with {owner}(); pass "
+            "blades=<int >= 3> for a polygonal diaphragm, or drop rotation"
+        )
+    return rotation
+
+
+def check_bool(name: str, value) -> bool:
+    """`value` as a Python bool (not merely truthy)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{name} must be a Python bool, got {value!r}")
+    return value
+
+
+def check_key(key, what: str, how: str) -> Array:
+    """A single `jax.random` key: a typed key (`jax.random.key`) or a raw `uint32[2]`
+    (`jax.random.PRNGKey`). `what` names the method that needs it and `how` is the call that
+    gives it one, for the message when it is missing."""
+    if key is None:
+        raise ValueError(
+            f"{what} draws random samples and needs an explicit key: pass e.g. {how} (the same "
+            "key always gives the same image)"
+        )
+    key = jnp.asarray(key) if not isinstance(key, jax.Array) else key
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        if key.shape != ():
+            raise ValueError(f"key must be a single PRNG key, got a key array of shape {key.shape}")
+        return key
+    if key.dtype != jnp.uint32 or key.shape != (2,):
+        raise ValueError(
+            f"key must be a jax.random key (jax.random.key(seed) or jax.random.PRNGKey(seed)), got "
+            f"an array of dtype {key.dtype} and shape {key.shape}"
+        )
+    return key

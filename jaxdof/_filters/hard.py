@@ -1,28 +1,15 @@
-r"""Hard discs: a pixel belongs to a circle of confusion when its centre is inside it.
-
-Yu's uniform light distribution, and the 2006 paper's "simplest algorithm" (section 3.1.2):
-source `q` of radius `r` gives every pixel `p` with `|p - q| <= r` the same share of its light,
-
-$$\text{out}[p] = \sum_q \text{image}[q]\,\frac{[\,|p - q| \le r_q\,]}{N(r_q)},\qquad
-  N(r) = \#\{o \in \mathbb{Z}^2 : |o| \le r\}.$$
-
-Dividing by the count `N(r)` of covered pixels (Gauss's circle problem), not by `pi r^2`, makes
-the filter conserve energy exactly; the paper's `e / (pi r^2)` does not, and its brightness jumps as
-`r` crosses the radius of a lattice point (the moiré of its figure 4). `r < 1` covers only the
-source pixel: the identity.
-
-**Gradients:** linear in `image` (exact gradient). Piecewise constant in `radius`: the derivative
-with respect to the radius is zero almost everywhere (and the jumps are not differentiable), so this
-method cannot fit a lens; `coc_filter.DIFFERENTIABLE_IN_RADIUS["hard"]` is `False`.
-"""
+"""`Hard`: a pixel belongs to a circle of confusion when its centre is inside it."""
 
 from __future__ import annotations
+
+from typing import ClassVar, final
 
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
+from .base import AbstractMethod
 from .common import window_half_width
 from .taps import gather_taps
 
@@ -55,3 +42,37 @@ def hard_filter(
     return gather_taps(
         scaled, offsets, weight, per_tap=(jnp.asarray(d2, radius.dtype),), source=(r2,)
     )
+
+
+@final
+class Hard(AbstractMethod):
+    r"""Hard discs: a pixel belongs to a circle of confusion when its centre is inside it.
+
+    Yu's uniform light distribution, and the 2006 paper's "simplest algorithm" (section 3.1.2):
+    source `q` of radius `r` gives every pixel `p` with `|p - q| <= r` the same share of its light,
+
+    $$\text{out}[p] = \sum_q \text{image}[q]\,\frac{[\,|p - q| \le r_q\,]}{N(r_q)},\qquad
+      N(r) = \#\{o \in \mathbb{Z}^2 : |o| \le r\}.$$
+
+    Dividing by the count `N(r)` of covered pixels (Gauss's circle problem), not by `pi r^2`, makes
+    the filter conserve energy exactly; the paper's `e / (pi r^2)` does not, and its brightness
+    jumps as `r` crosses the radius of a lattice point (the moiré of its figure 4). `r < 1` covers
+    only the source pixel: the identity. No options.
+
+    **Gradients:** linear in `image` (exact gradient). Piecewise constant in `radius`: the
+    derivative with respect to the radius is zero almost everywhere (and the jumps are not
+    differentiable), so this method cannot fit a lens (`differentiable_in_radius = False`).
+    """
+
+    differentiable_in_radius: ClassVar[bool] = False
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        del depth
+        return hard_filter(image, radius, max_radius=max_radius)

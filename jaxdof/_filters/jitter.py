@@ -1,18 +1,4 @@
-r"""Jittered coverage: `n` random sample points per output pixel, from an explicit `jax.random` key.
-
-The 2006 paper's irregular alternative to the `n x n` grid: each output pixel `p` tests `n` points
-`p + s_{p,k}` against every circle of confusion. The points are stratified jitter (a Latin
-hypercube: one point in each of `n` horizontal and `n` vertical strips of the pixel, paired by a
-random permutation), a cheap approximation to the Poisson-disk distribution the paper cites.
-Source `q` of radius `r` gives pixel `p`
-
-$$w(p, q) = \frac{1}{\pi r_q^2}\cdot\frac{1}{n}\sum_{k=1}^{n} [\,|p + s_{p,k} - q| \le r_q\,],$$
-
-the paper's `e / (pi r^2)` times the estimated covered fraction of the pixel. Because the points
-are uniform in the pixel, `E[w] = area(disc ∩ pixel) / (pi r^2)`: **an unbiased estimate of the soft
-filter's weight**, which is its `n -> infinity` limit (error `O(n^-1/2)` for independent points, faster
-for the stratified ones). Energy is conserved in expectation, not exactly. Radii `<= 1/2` leave
-their pixel untouched, as in the soft filter.
+r"""`Jitter`: `n` random sample points per output pixel (the model is in its docstring).
 
 **A precomputed set of patterns.** The paper found generating random numbers per pixel costly
 "unless using a precomputed set of numbers"; so `key` draws `PATTERNS` (16) Latin hypercubes once,
@@ -27,26 +13,23 @@ look-ups. Same estimate, same expectation.
 is exact: `1 / (pi r^2)`, the soft filter's weight. From `JITTER_SPANS_MIN_RADIUS` on, those pixels
 are added as row spans and only the partially covered ones count hits (`spans.py`, whose boundary
 taps take a per-output-pixel weight for this): `O(r)` work per source instead of `O(r^2)`.
-
-The same `key` always gives the same points and the same image (`normalize=True` reuses them for the
-flat field).
-
-**Gradients:** linear in `image`. The coverage is a step function of the radius, so the radius is
-held constant (`stop_gradient`): `DIFFERENTIABLE_IN_RADIUS["jitter"]` is `False`.
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
+from typing import ClassVar, final
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
-from .common import is_concrete, tap_offsets
+from .base import AbstractMethod
+from .common import check_int, check_key, is_concrete, tap_offsets
 from .spans import crossover_for, spans_filter, spans_layout, use_spans
 from .taps import gather_taps
 
@@ -195,3 +178,58 @@ def _jitter_spans(image, r, max_radius, inv_area, table, choice):
         return hits.astype(r.dtype) * inv_area[None]
 
     return spans_filter(image, r, max_radius=max_radius, partial=partial)
+
+
+@final
+class Jitter(AbstractMethod):
+    r"""Jittered coverage: `n` random points per output pixel, drawn from a `jax.random` key.
+
+    The 2006 paper's irregular alternative to the `n x n` grid of `Supersample`: each output pixel
+    `p` tests `n` points `p + s_{p,k}` against every circle of confusion. The points are stratified
+    jitter (a Latin hypercube: one point in each of `n` horizontal and `n` vertical strips of the
+    pixel, paired by a random permutation), a cheap approximation to the Poisson-disk distribution
+    the paper cites. Source `q` of radius `r` gives pixel `p`
+
+    $$w(p, q) = \frac{1}{\pi r_q^2}\cdot\frac{1}{n}\sum_{k=1}^{n} [\,|p + s_{p,k} - q| \le r_q\,],$$
+
+    the paper's `e / (pi r^2)` times the estimated covered fraction of the pixel. Because the points
+    are uniform in the pixel, `E[w] = area(disc ∩ pixel) / (pi r^2)`: **an unbiased estimate of the
+    weight of `Soft`**, which is its `n -> infinity` limit (error `O(n^-1/2)` for independent
+    points, faster for the stratified ones). Energy is conserved in expectation, not exactly. Radii
+    `<= 1/2` leave their pixel untouched, as in the soft filter. The points are 16 Latin hypercubes
+    drawn from `key`, one picked at random (also from `key`) for each output pixel: the paper's
+    "precomputed set of numbers". The same `key` always gives the same points and the same image
+    (`normalize=True` reuses them for the flat field).
+
+    **Fields:**
+
+    - `samples`: `n`, the points per output pixel, an int `>= 1` (default 16).
+    - `key`: the `jax.random` key the points are drawn from (`jax.random.key(seed)` or
+      `jax.random.PRNGKey(seed)`); required. An array leaf: a key given under `jit` is traced
+      (the points are then drawn at run time, not at compile time).
+
+    **Gradients:** linear in `image`. The coverage is a step function of the radius, so the radius
+    is held constant (`stop_gradient`): `differentiable_in_radius = False`.
+    """
+
+    samples: int = eqx.field(static=True)
+    key: PRNGKeyArray
+
+    differentiable_in_radius: ClassVar[bool] = False
+
+    def __init__(self, *, samples: int = 16, key: ArrayLike | None = None):
+        self.samples = check_int("samples", samples, 1)
+        self.key = check_key(key, "Jitter()", "jaxdof.Jitter(key=jax.random.key(0))")
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        del depth
+        return jitter_filter(
+            image, radius, max_radius=max_radius, samples=self.samples, key=self.key
+        )

@@ -1,21 +1,4 @@
-r"""Layered convolution: quantise the radius map into `L` levels and blur each level by one kernel.
-
-The scatter of the soft filter is linear in the sources, so splitting the image by radius,
-
-$$\text{out} = \sum_{l=1}^{L} K_{\rho_l} * (\text{image} \cdot M_l),\qquad
-  K_\rho(o) = \frac{|\,\text{disc}(0, \rho) \cap \text{pixel}(o)\,|}{\pi \rho^2},$$
-
-with masks `M_l` (the pixels assigned to level `l`) and one space-invariant soft disc kernel per
-level, is **the same scatter as `"soft"`** whenever every pixel's radius equals its level's `rho_l`.
-With at most `L` distinct radii the levels are those radii and the result equals the soft filter
-everywhere, depth edges included: the scatter formulation has no occlusion, so a layer boundary is
-not special (occlusion-aware compositing is the ray-traced validation's business). Radii `<= 1/2`
-all act as the identity and share one level.
-
-With more than `L` distinct radii the pixels at radius `<= 1/2` (sharp: the identity) keep a level
-of their own, the range of the others is cut into equal bins for the remaining levels, and each
-bin is blurred with the **mean radius of its pixels**; the error is that of a radius off by up to
-half a bin width, and sharp pixels stay sharp.
+r"""`Layered`: one soft disc kernel per radius level (the model is in its docstring).
 
 The convolutions run in one of two ways, chosen by cost (`direct_is_cheaper`; `path=` forces one):
 
@@ -27,25 +10,26 @@ The convolutions run in one of two ways, chosen by cost (`direct_is_cheaper`; `p
   weight looked up from the `(T, L)` table of its level's disc weights (`tabulated.py`, the soft
   filter's own weights). Cost `O(T H W)` with a look-up that grows with `L`.
 
-**Gradients:** linear in `image` (exact). In `radius`, the assignment to levels is piecewise constant
-and the gradient flows only through the level means: each pixel receives the average derivative of
-its level. That is exact for a lens fitted to a scene of at most `L` depth planes (every pixel of a
-plane moves together), and an approximation otherwise: `DIFFERENTIABLE_IN_RADIUS["layered"]` is
-`False` (per-pixel radius gradients are not those of the scatter).
+On a concrete radius map `Layered.prepare` assigns the levels in numpy once (`assign_numpy`,
+`level_radii`, `sharp_first_level`), so that neither the level search nor the kernels' spectra
+enter the compiled graph; a traced map is assigned inside it (`assign_levels`).
 """
 
 from __future__ import annotations
 
 import math
+from typing import ClassVar, final
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from .._overlap import circle_pixel_overlap
-from .common import level_index, tap_offsets, window_half_width
+from .base import AbstractMethod
+from .common import check_int, level_index, tap_offsets, window_half_width
 from .tabulated import tabulated_filter
 
 
@@ -251,3 +235,109 @@ def sharp_first_level(radius: np.ndarray, assignment: np.ndarray) -> bool:
     """True when level 0 of `assignment` is non-empty and holds only radii `<= 1/2` (identity)."""
     in_first = assignment == 0
     return bool(in_first.any() and np.all(radius[in_first] <= 0.5))
+
+
+@final
+class Layered(AbstractMethod):
+    r"""Layered convolution: quantise the radius map into `L` levels and blur each by one kernel.
+
+    The scatter of the soft filter is linear in the sources, so splitting the image by radius,
+
+    $$\text{out} = \sum_{l=1}^{L} K_{\rho_l} * (\text{image} \cdot M_l),\qquad
+      K_\rho(o) = \frac{|\,\text{disc}(0, \rho) \cap \text{pixel}(o)\,|}{\pi \rho^2},$$
+
+    with masks `M_l` (the pixels assigned to level `l`) and one space-invariant soft disc kernel
+    per level, is **the same scatter as `Soft`** whenever every pixel's radius equals its level's
+    `rho_l`. With at most `L` distinct radii the levels are those radii and the result equals the
+    soft filter everywhere, depth edges included: the scatter formulation has no occlusion, so a
+    layer boundary is not special (occlusion-aware compositing is `Occlusion`'s business). Radii
+    `<= 1/2` all act as the identity and share one level.
+
+    With more than `L` distinct radii the pixels at radius `<= 1/2` (sharp: the identity) keep a
+    level of their own, the range of the others is cut into equal bins for the remaining levels,
+    and each bin is blurred with the **mean radius of its pixels**; the error is that of a radius
+    off by up to half a bin width, and sharp pixels stay sharp.
+
+    Each level is blurred by FFT in large windows and by a direct sum with the levels' weights
+    looked up in small ones, whichever costs less (`jaxdof/_filters/layered.py`); the two agree to
+    rounding.
+
+    **Fields:**
+
+    - `layers`: `L`, the number of radius levels, an int in `[1, 256]` (default 8).
+
+    **Gradients:** linear in `image` (exact). In `radius`, the assignment to levels is piecewise
+    constant and the gradient flows only through the level means: each pixel receives the average
+    derivative of its level. That is exact for a lens fitted to a scene of at most `L` depth planes
+    (every pixel of a plane moves together), and an approximation otherwise:
+    `differentiable_in_radius = False` (per-pixel radius gradients are not those of the scatter).
+    """
+
+    layers: int = eqx.field(static=True)
+
+    differentiable_in_radius: ClassVar[bool] = False
+
+    def __init__(self, *, layers: int = 8):
+        self.layers = check_int("layers", layers, 1, 256)
+
+    def prepare(self, radius: np.ndarray, max_radius: float) -> AbstractMethod:
+        """Assign the levels of a concrete radius map in numpy (index map, level radii, whether
+        level 0 holds only sharp pixels): `_LayeredLevels`, whose kernels are compile-time
+        constants."""
+        del max_radius
+        assignment = assign_numpy(radius, self.layers)
+        return _LayeredLevels(
+            layers=self.layers,
+            assignment=assignment,
+            sharp_level=sharp_first_level(radius, assignment),
+            levels=level_radii(radius, assignment, self.layers),
+        )
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        """The traced radius map: levels searched and averaged inside the computation."""
+        del depth
+        return layered_filter(image, radius, max_radius=max_radius, layers=self.layers)
+
+
+@final
+class _LayeredLevels(AbstractMethod):
+    """`Layered` prepared on a concrete radius map: its levels, assigned once in numpy.
+
+    `assignment` (`(H, W)` int32) indexes `levels` (`(L,)`, pixels; the mean radius of each
+    level's pixels, radii `<= 1/2` as 0); `sharp_level`: level 0 holds only radii `<= 1/2` and is
+    copied instead of convolved. The `radius` passed at the call is not read again (it is the map
+    these were computed from), so there is no radius gradient.
+    """
+
+    layers: int = eqx.field(static=True)
+    assignment: Int[np.ndarray, "h w"]
+    sharp_level: bool = eqx.field(static=True)
+    levels: Float[np.ndarray, " l"]
+
+    differentiable_in_radius: ClassVar[bool] = False
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        del depth
+        return layered_filter(
+            image,
+            radius,
+            max_radius=max_radius,
+            layers=self.layers,
+            assignment=self.assignment,
+            sharp_level=self.sharp_level,
+            static_levels=self.levels,
+        )

@@ -1,63 +1,19 @@
-r"""Occlusion-aware scatter: depth-ordered layers, each blurred on its own, composited with `over`.
-
-The soft scatter (`"soft"`) adds every pixel's disc of light to the output, whatever lies in front
-of it. A real aperture does not: light from a far surface is blocked by a nearer one, and around a
-nearer object's edge the aperture sees background that the all-in-focus (pinhole) image hides. This
-method models both, in the manner of layered bokeh renderers (Kraus & Strengert 2007, "Depth-of-
-Field Rendering by Pyramidal Image Processing", Computer Graphics Forum 26(3); Lee, Kim & Choi 2009,
-"Depth-of-field rendering with multiview synthesis", ACM TOG 28(5)):
-
-1. **Layers at depth gaps.** The pixels are split into at most `L` layers where the sorted
-   log-depths jump by more than `log(1 + jump)` (a relative depth gap of `jump`, default 3%, the
-   same threshold as `jaxdof.depth_edges`): the `L - 1` largest such gaps are the boundaries. A
-   scene without such a gap (one plane, a slanted plane, any continuous surface) is one layer, and
-   the method is then **exactly the soft filter** (the option stays off where there is nothing to
-   occlude). Layer `0` is the nearest.
-2. **Hidden background** (`fill=True`). Layer `l` is extended behind every nearer layer: a hidden
-   pixel `p` takes the colour and radius of its nearest pixel `q(p)` among the pixels of layer `l`
-   *and farther*, and belongs to the extension of layer `l` when that pixel is of layer `l`. The
-   nearest pixel is found by jump flooding (Rong & Tan 2006), exact up to rare one-pixel
-   mismatches. With `fill=False` each layer holds only its visible pixels.
-3. **Blur each layer** with the soft scatter of its own per-pixel radii, premultiplied colour and
-   coverage alike:
-
-   $$P_l = \mathcal{S}_{r_l}[\,m_l\, c_l\,], \qquad \alpha_l = \mathcal{S}_{r_l}[\,m_l\,],$$
-
-   with `S_r` the soft scatter (`jaxdof/_filters/soft.py`), `m_l` the layer's (extended) mask,
-   `c_l` and `r_l` the colour and radius of `q(p)` (the pixel itself where it is visible).
-4. **Composite from back to front**, `out = P_0 + (1 - alpha_0)(P_1 + (1 - alpha_1)(P_2 + ...))`,
-   with each transmittance `1 - alpha` clipped to `[0, 1]` (inside a layer whose radius varies the
-   scattered coverage can exceed 1 by a little).
-
-What the model gets right and wrong: a sharp foreground edge stays sharp in front of a blurred
-background (the plain scatter spreads background light over it); a defocused foreground edge
-becomes partly transparent and shows the (filled) background behind it, as a real aperture sees.
-The filled background is a guess (the nearest visible colour, streaked inwards), so what the
-aperture sees behind an occluder is only approximated; a continuous surface split across two
-layers (only where a >= `jump` gap separates them in depth, i.e. never within a smooth surface)
-would be composited as two objects.
-
-**Gradients.** Linear in `image` (every step above is a gather, a scatter or a product with
-masks that do not depend on it). In `radius` the per-pixel soft scatter's exact derivative (the
-layers and the nearest-pixel map depend only on `depth`). In `depth` the output is piecewise
-constant (the layering is a discrete choice; `stop_gradient`): through `jaxdof.render` the depth
-still acts through the radius. So a lens can be fitted through it (`DIFFERENTIABLE_IN_RADIUS`).
-
-**Cost.** With `fill=True` one soft scatter of `C + 1` channels per layer (the radius of a hidden
-pixel differs per layer): about `L` times the soft filter. With `fill=False` one scatter of
-`L (C + 1)` channels.
-"""
+"""`Occlusion`: depth-ordered layers, each blurred on its own, composited with `over`."""
 
 from __future__ import annotations
 
 import math
+from typing import ClassVar, final
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
 from .._custom_types import DepthLike
+from .base import AbstractMethod
+from .common import check_bool, check_depth_map, check_int
 from .soft import soft_filter
 
 
@@ -173,13 +129,7 @@ def occlusion_filter(
     if depth is None or layers == 1:
         # no depth order known (or asked for): one layer, which is exactly the soft scatter
         return soft_filter(image, radius, max_radius=max_radius)
-    depth = jnp.asarray(depth)
-    if depth.shape != (h, w) or not jnp.issubdtype(depth.dtype, jnp.floating):
-        raise ValueError(
-            f"depth must be a floating-point (H, W) = {(h, w)} map for method='occlusion', got "
-            f"shape {depth.shape} and dtype {depth.dtype}"
-        )
-    depth = depth.astype(image.dtype)
+    depth = check_depth_map(depth, (h, w)).astype(image.dtype)
     layer = depth_layers(depth, layers, jump)
     masks, colours, radii = _layer_sources(image, radius, layer, layers, fill)
     if fill:
@@ -197,3 +147,90 @@ def occlusion_filter(
         transmit = jnp.clip(1 - alpha[k], 0, 1)
         out = premult[k] + transmit[..., None] * out
     return out
+
+
+@final
+class Occlusion(AbstractMethod):
+    r"""Occlusion-aware scatter: depth-ordered layers, each blurred alone, composited with `over`.
+
+    The soft scatter (`Soft`) adds every pixel's disc of light to the output, whatever lies in front
+    of it. A real aperture does not: light from a far surface is blocked by a nearer one, and around
+    a nearer object's edge the aperture sees background that the all-in-focus (pinhole) image hides.
+    This method models both, in the manner of layered bokeh renderers (Kraus & Strengert 2007,
+    "Depth-of-Field Rendering by Pyramidal Image Processing", Computer Graphics Forum 26(3); Lee,
+    Kim & Choi 2009, "Depth-of-field rendering with multiview synthesis", ACM TOG 28(5)):
+
+    1. **Layers at depth gaps.** The pixels are split into at most `L` layers where the sorted
+       log-depths jump by more than `log(1 + jump)` (a relative depth gap of `jump`, default 3%, the
+       same threshold as `jaxdof.depth_edges`): the `L - 1` largest such gaps are the boundaries. A
+       scene without such a gap (one plane, a slanted plane, any continuous surface) is one layer,
+       and the method is then **exactly the soft filter** (the option stays off where there is
+       nothing to occlude). Layer `0` is the nearest.
+    2. **Hidden background** (`fill=True`). Layer `l` is extended behind every nearer layer: a
+       hidden pixel `p` takes the colour and radius of its nearest pixel `q(p)` among the pixels of
+       layer `l` *and farther*, and belongs to the extension of layer `l` when that pixel is of
+       layer `l`. The nearest pixel is found by jump flooding (Rong & Tan 2006), exact up to rare
+       one-pixel mismatches. With `fill=False` each layer holds only its visible pixels.
+    3. **Blur each layer** with the soft scatter of its own per-pixel radii, premultiplied colour
+       and coverage alike:
+
+       $$P_l = \mathcal{S}_{r_l}[\,m_l\, c_l\,], \qquad \alpha_l = \mathcal{S}_{r_l}[\,m_l\,],$$
+
+       with `S_r` the soft scatter (`jaxdof/_filters/soft.py`), `m_l` the layer's (extended) mask,
+       `c_l` and `r_l` the colour and radius of `q(p)` (the pixel itself where it is visible).
+    4. **Composite from back to front**,
+       `out = P_0 + (1 - alpha_0)(P_1 + (1 - alpha_1)(P_2 + ...))`, with each transmittance
+       `1 - alpha` clipped to `[0, 1]` (inside a layer whose radius varies the scattered coverage
+       can exceed 1 by a little).
+
+    What the model gets right and wrong: a sharp foreground edge stays sharp in front of a blurred
+    background (the plain scatter spreads background light over it); a defocused foreground edge
+    becomes partly transparent and shows the (filled) background behind it, as a real aperture sees.
+    The filled background is a guess (the nearest visible colour, streaked inwards), so what the
+    aperture sees behind an occluder is only approximated; a continuous surface split across two
+    layers (only where a >= `jump` gap separates them in depth, i.e. never within a smooth surface)
+    would be composited as two objects.
+
+    **Gradients.** Linear in `image` (every step above is a gather, a scatter or a product with
+    masks that do not depend on it). In `radius` the per-pixel soft scatter's exact derivative (the
+    layers and the nearest-pixel map depend only on `depth`). In `depth` the output is piecewise
+    constant (the layering is a discrete choice; `stop_gradient`): through `jaxdof.render` the depth
+    still acts through the radius. So a lens can be fitted through it
+    (`differentiable_in_radius = True`).
+
+    **Cost.** With `fill=True` one soft scatter of `C + 1` channels per layer (the radius of a
+    hidden pixel differs per layer): about `L` times the soft filter. With `fill=False` one scatter
+    of `L (C + 1)` channels.
+
+    **Fields:**
+
+    - `layers`: `L`, the most depth layers, an int in `[1, 256]` (default 4). `1` is the soft
+      filter.
+    - `fill`: extend each layer behind the nearer ones (step 2; default `True`).
+
+    Opt-in: `uses_depth = True`, so `jaxdof.render` passes its depth map; `jaxdof.coc_filter` takes
+    it as `depth=` (`(H, W)`, positive z-depth, e.g. metres; without it the frame is one layer, the
+    soft filter). Differentiable in `image` and `radius`, not in `depth`.
+    """
+
+    layers: int = eqx.field(static=True)
+    fill: bool = eqx.field(static=True)
+
+    differentiable_in_radius: ClassVar[bool] = True
+    uses_depth: ClassVar[bool] = True
+
+    def __init__(self, *, layers: int = 4, fill: bool = True):
+        self.layers = check_int("layers", layers, 1, 256)
+        self.fill = check_bool("fill", fill)
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        return occlusion_filter(
+            image, radius, max_radius=max_radius, depth=depth, layers=self.layers, fill=self.fill
+        )

@@ -80,7 +80,7 @@ from .soft import soft_filter, tap_weight
 #: module docstring; `tests/test_spans.py::test_two_taps_cover_the_boundary` checks it).
 TAPS = 2
 
-#: `coc_filter(method="soft")` uses this path when `max_radius >= SPANS_MIN_RADIUS`, the dense
+#: `Soft()` (the disc) uses this path when `max_radius >= SPANS_MIN_RADIUS`, the dense
 #: gather below it. Measured crossover, `python fits/bench_speed.py --paths-only` (section "Dense
 #: gather vs row spans" of `fits/results/speed.md`; 256^2 RGB float32, CPU time, 2-core CPU shared
 #: with other jobs): at max radius 8 spans lose (0.078 s vs 0.074 s dense forward, 0.210 vs

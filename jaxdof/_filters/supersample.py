@@ -1,17 +1,4 @@
-r"""Supersampled coverage: the fraction of `n x n` sub-pixel points inside the circle of confusion.
-
-The 2006 paper's antialiasing (section 3.1.2): subdivide every pixel into `n x n` sub-pixels and
-count those whose centres fall in the disc. Pixel `p` receives from source `q` of radius `r`
-
-$$w_n(p - q, r) = \frac{c_n(p - q, r)}{\sum_o c_n(o, r)},\qquad
-  c_n(o, r) = \#\{(i, j) \in [0, n)^2 : |o + s_{ij}| \le r\},\quad
-  s_{ij} = \left(\tfrac{j + 1/2}{n} - \tfrac12,\ \tfrac{i + 1/2}{n} - \tfrac12\right).$$
-
-Normalising by the total count (not by `pi r^2 n^2`) conserves energy exactly. `n = 1` is the
-hard disc. **The analytic overlap is the `n -> infinity` limit**: `c_n(o, r) / n^2` is a midpoint
-rule for the area of `disc(0, r) ∩ pixel(o)`, which converges to it at rate `O(1/n)` on the pixels the
-circle crosses, and `sum_o c_n / n^2 -> pi r^2`; so `w_n -> area / (pi r^2)`, the soft filter's weight (tested in `tests/test_methods.py`).
-Radii `<= 1/2` leave their pixel untouched, as in the soft filter.
+r"""`Supersample`: coverage counted on `n x n` sub-pixel points (the model is in its docstring).
 
 The count is exact integer arithmetic done row by row: on the sub-row at height `y` the aperture
 spans `[xl(y), xr(y)]` and the sub-pixel columns inside it are a range of integers, so a tap costs
@@ -23,21 +10,21 @@ taps share it, as in the soft filter). With `blades` the aperture is the inscrib
 `n^2 / N(r)` whatever `n`: from `SUPERSAMPLE_SPANS_MIN_RADIUS` on, those pixels are added as row spans
 (`spans.py`) and only the partially covered ones are counted, `O(r)` work per source instead of
 `O(r^2)`. Same counts, same numbers to rounding.
-
-**Gradients:** linear in `image`. Piecewise constant in `radius` (zero derivative almost
-everywhere): `DIFFERENTIABLE_IN_RADIUS["supersample"]` is `False`.
 """
 
 from __future__ import annotations
 
 import math
+from typing import ClassVar, final
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
-from .common import tap_offsets, window_half_width
+from .base import AbstractMethod
+from .common import check_blades, check_int, check_rotation, tap_offsets, window_half_width
 from .shape import row_extent
 from .soft import mirrored_scatter
 from .spans import crossover_for, spans_filter, use_spans
@@ -179,3 +166,63 @@ def _spans(image, r, max_radius: float, inv_total, n: int) -> Array:
     return spans_filter(
         image, r, max_radius=max_radius, partial=partial, interior=n * n * inv_total
     )
+
+
+@final
+class Supersample(AbstractMethod):
+    r"""Supersampled coverage: the fraction of `n x n` sub-pixel points inside the circle.
+
+    The 2006 paper's antialiasing (section 3.1.2): subdivide every pixel into `n x n` sub-pixels
+    and count those whose centres fall in the disc. Pixel `p` receives from source `q` of radius `r`
+
+    $$w_n(p - q, r) = \frac{c_n(p - q, r)}{\sum_o c_n(o, r)},\qquad
+      c_n(o, r) = \#\{(i, j) \in [0, n)^2 : |o + s_{ij}| \le r\},\quad
+      s_{ij} = \left(\tfrac{j + 1/2}{n} - \tfrac12,\ \tfrac{i + 1/2}{n} - \tfrac12\right).$$
+
+    Normalising by the total count (not by `pi r^2 n^2`) conserves energy exactly. `n = 1` is the
+    hard disc. **The analytic overlap is the `n -> infinity` limit**: `c_n(o, r) / n^2` is a
+    midpoint rule for the area of `disc(0, r) ∩ pixel(o)`, which converges to it at rate `O(1/n)`
+    on the pixels the circle crosses, and `sum_o c_n / n^2 -> pi r^2`; so `w_n -> area / (pi r^2)`,
+    the weight of `Soft` (tested in `tests/test_methods.py`). Radii `<= 1/2` leave their pixel
+    untouched, as in the soft filter.
+
+    **Fields:**
+
+    - `samples`: `n`, the sub-pixel points per axis, an int in `[1, 64]` (default 4: 16 points per
+      pixel; 64 x 64 = 4096 is the most).
+    - `blades`: `None` (a circular aperture, the default) or the number of diaphragm blades, an
+      int in `[3, 1024]`: the regular polygon inscribed in the circle of confusion (see `Soft`).
+    - `rotation`: the polygon's rotation in radians (default 0); only with `blades`.
+
+    **Gradients:** linear in `image`. Piecewise constant in `radius` (zero derivative almost
+    everywhere): `differentiable_in_radius = False`.
+    """
+
+    samples: int = eqx.field(static=True)
+    blades: int | None = eqx.field(static=True)
+    rotation: float = eqx.field(static=True)
+
+    differentiable_in_radius: ClassVar[bool] = False
+
+    def __init__(self, *, samples: int = 4, blades: int | None = None, rotation: float = 0.0):
+        self.samples = check_int("samples", samples, 1, 64)  # 64 x 64 = 4096 sub-samples a pixel
+        self.blades = check_blades(blades)
+        self.rotation = check_rotation(rotation, self.blades, "Supersample")
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        del depth
+        return supersample_filter(
+            image,
+            radius,
+            max_radius=max_radius,
+            samples=self.samples,
+            blades=self.blades,
+            rotation=self.rotation,
+        )

@@ -10,16 +10,19 @@ $$\text{out}[p] = \sum_o \text{image}[p - o]\; T[o, \ell(p - o)], \qquad T[o, l]
 The table holds the soft filter's own weights (`soft.tap_weight`), so the result is the soft
 filter's to rounding, depth edges included; only the cost changes, to that of a gather with
 constant weights plus one table read per class (for windows of at most 25 taps the class loop is
-written out rather than scanned). Used by `method="auto"` on a concrete radius map
-(see `auto.py`); radii `<= 1/2` share one level (the identity).
+written out rather than scanned). `Tabulated` is what `Auto` runs on a concrete radius map of
+repeated radii (see `auto.py`); radii `<= 1/2` share one level (the identity).
 """
 
 from __future__ import annotations
+
+from typing import ClassVar, final
 
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .base import AbstractMethod
 from .common import half_width, pad_rows_cols, tap_offsets, unique_with_index
 from .soft import _offset_geometry, mirror_classes, mirrored_scatter, tap_weight
 
@@ -99,3 +102,36 @@ def _classes_written_out(image, rho, idx, offsets: np.ndarray) -> Array:
             for oy, ox in images:
                 out = out + source[:, pad - oy : pad - oy + h, pad - ox : pad - ox + w]
     return jnp.moveaxis(out, 0, -1)
+
+
+@final
+class Tabulated(AbstractMethod):
+    """The soft scatter of the radius map `levels[index]`, its weights looked up per level.
+
+    What `Auto.prepare` returns for a concrete map of repeated radii (not exported: it is built
+    from the map, `Tabulated(*radius_levels(radius))`). The result is `Soft`'s to rounding.
+
+    **Fields:**
+
+    - `levels`: the distinct radii `(L,)`, pixels (radii `<= 1/2` merged into one level, 0).
+    - `index`: each pixel's level `(H, W)`, int.
+
+    The `radius` passed at the call is not read (it is the map these were computed from), so there
+    is no radius gradient: `differentiable_in_radius = False`.
+    """
+
+    levels: Float[ArrayLike, " l"]
+    index: Int[ArrayLike, "h w"]
+
+    differentiable_in_radius: ClassVar[bool] = False
+
+    def __call__(
+        self,
+        image: Float[Array, "h w c"],
+        radius: Float[Array, "h w"],
+        *,
+        max_radius: float,
+        depth: Float[Array, "h w"] | None = None,
+    ) -> Float[Array, "h w c"]:
+        del radius, depth
+        return tabulated_filter(image, max_radius=max_radius, levels=self.levels, index=self.index)

@@ -1,0 +1,63 @@
+r"""Lens calibration: recover focal length, f-number and focus distance from defocused photos.
+
+`fit_lens` solves the nonlinear least-squares problem
+
+$$\min_\theta \sum_t \sum_p w_p \left( g_t\,\mathrm{render}(I, Z, \mathrm{lens}_t(\theta))_p + o_t
+  - T_{t,p} \right)^2$$
+
+over the free lens fields `theta` (and, optionally, an exposure gain `g_t` and offset `o_t` per
+target), with an optimistix least-squares solver (Levenberg-Marquardt by default), from a few
+starting points spread over the scene's depth range. It is the only package that imports
+optimistix. `render` is the forward model, `jaxdof.DefocusModel` unless another
+`jaxdof.AbstractForwardModel` is given.
+
+**What a single image can determine.** The circle of confusion of a point at depth `d` is
+`r = K |1 - d_f / d|` pixels with `K = f^2 / (2 N (d_f - f)) / p` (`jaxdof.coc_radius`), so one
+photo determines `K` and `d_f` but not `f` and `N` separately: any `(f, N)` with the same `K` (and
+`d_f`) renders the same image. `fit_lens` finds such a degeneracy from the rank of the
+column-scaled Jacobian at the solution and refuses it (`ValueError`) unless asked not to. A focus
+bracket (several photos with different focus distances through the same `f` and `N`) separates
+them: `K_t \propto 1 / (d_{f,t} - f)` varies across the bracket in a way that depends on `f`.
+
+**Coordinates.** The solver works in unconstrained coordinates, so every iterate is a physical lens:
+`log N`, `log f` (or `logit(f / d_f)` when the focus distance is held fixed, keeping `f < d_f`), and
+`log(d_f - f)` for the focus distance. Results and standard errors are mapped back to each field's
+own units (metres, or dimensionless for `N`).
+
+**The parts**, lower to higher:
+
+- `layout.py`: the parameter layout (`_Spec`, `_Layout`) and the unconstrained coordinates;
+- `forward.py`: the forward models (`AbstractForwardModel`, `DefocusModel`) and `max_circle`;
+- `residual.py`: the residual function (`_Model`) with its Jacobian-materialising JVP rule;
+- `result.py`: `FitResult`, the status enumeration `RESULTS`, and the wording;
+- `prepare.py`: input checks and conversion;
+- `solve.py`: the pure solve, statistics, the compiled stages and `solve_lens`;
+- `strategies.py`: starts, windows, the coarse-to-fine pyramid;
+- `verbose.py`: progress printing through optimistix's `verbose`;
+- `fit.py`: `fit_lens`, which orchestrates them.
+
+**For studies** (`jaxdof.internal` re-exports these): `auto_levels` (the automatic pyramid
+rule), `max_circle` (the largest circle of lenses over a depth map), `start_lenses` (fit_lens's
+starts), `window_for` (its window policy), `record_stages` (time the compiled stages of
+`fit_lens` calls without patching), `run_stage`, `fit_starts` and `finish` (the stages).
+"""
+
+from .fit import fit_lens as fit_lens
+from .forward import (
+    AbstractForwardModel as AbstractForwardModel,
+    DefocusModel as DefocusModel,
+    max_circle as max_circle,
+)
+from .result import RESULTS as RESULTS, FitResult as FitResult
+from .solve import (
+    finish as finish,
+    fit_starts as fit_starts,
+    record_stages as record_stages,
+    run_stage as run_stage,
+    solve_lens as solve_lens,
+)
+from .strategies import (
+    auto_levels as auto_levels,
+    start_lenses as start_lenses,
+    window_for as window_for,
+)

@@ -1,0 +1,617 @@
+r"""`fit_lens`: checks, then the parts in order: starts, pyramid, full-resolution solve with the
+window policy, statistics, and the verdict in words.
+
+The two compiled calls per level (`solve.fit_starts`, `solve.finish`) run through
+`solve.run_stage`; everything between them is numpy on the host. An error raised while they run
+(a forward model's run-time check, a NaN under `jax_debug_nans`) becomes a failed `FitResult`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import ArrayLike
+
+from .._filters.common import is_concrete
+from .._lens import ThinLens
+from .forward import AbstractForwardModel
+from .layout import LENS_FIELDS, pack, theta_floor
+from .prepare import (
+    Problem,
+    _check_names,
+    _check_options,
+    check_differentiable,
+    forward_model,
+    prepare_problem,
+)
+from .residual import _Model
+from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
+from .solve import _default_tol, finish, fit_starts, restate, run_stage
+from .strategies import (
+    _COARSE_TOL,
+    _check_pyramid,
+    _downsample,
+    _next_starts,
+    apply_border,
+    auto_levels,
+    check_border,
+    distinct,
+    level_band,
+    start_lenses,
+    window_for,
+)
+from .verbose import _with_verbose
+
+
+# Errors that running the compiled solve can raise on valid inputs: a run-time check
+# (`equinox.error_if`, e.g. in a user's forward model: `EquinoxRuntimeError` under
+# `equinox.filter_jit`, `JaxRuntimeError` under `jax.jit`, which is XLA's runtime error) or a NaN
+# under `jax_debug_nans` (`FloatingPointError`). `fit_lens` reports them as a failed fit.
+_SOLVER_ERRORS = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, FloatingPointError)
+
+# A free focus whose coordinate `y` (`|y| ~ fcap / d_f`) ends within `_NEAR_INFINITY` of 0 (a focus
+# beyond 1000 times the nearest depth: circles within 1e-3 of the largest from infinity's) is
+# tried at infinity as a bound (`_settle_at_infinity`): the solver cannot settle on the kink of
+# `|y|` there, and may even report convergence on it (float32, tolerance 1e-5: a start stalled at
+# y = 1.5e-6 with N = 2.84 instead of 2.0 "converged").
+_NEAR_INFINITY = 1e-3
+
+
+_SUCCESSFUL, _MAX_STEPS, _DEAD_ZONE, _DEGENERATE, _WINDOW, _AMBIGUOUS = (
+    code_of(s)
+    for s in (
+        RESULTS.successful,
+        RESULTS.max_steps,
+        RESULTS.dead_zone,
+        RESULTS.degenerate,
+        RESULTS.window,
+        RESULTS.ambiguous,
+    )
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """What the stages of one `fit_lens` call share (host side)."""
+
+    problem: Problem
+    forward: AbstractForwardModel
+    solver: optx.AbstractLeastSquaresSolver
+    coarse_solver: optx.AbstractLeastSquaresSolver
+    verbose: bool | Callable[..., None]
+    max_steps: int
+    max_radius: float | None  # the user's window; None: automatic
+    levels: int
+    border: int | None  # the user's band (photo pixels); None: the window's (automatic)
+
+    def residual(self, window: float) -> _Model:
+        """The residual function with a given filter window."""
+        spec = self.problem.spec
+        return _Model(spec.n_targets, window, spec.exposure, self.forward, len(spec.used))
+
+    def solve(self, window: float, y0s, args, level: int, solver):
+        """One `fit_starts` stage at pyramid `level` (0: full resolution) with `window` (that
+        level's pixels): model, solution, its `info` on the host, the `args` solved (the border
+        band's weights set to 0: data, so every band shares the compiled solve), and the band
+        used and the band asked for (they differ when the band would leave no pixel)."""
+        model = self.residual(window)
+        wanted = level_band(self.border, self.forward, window, level)
+        sqrt_w, band = apply_border(args[3], wanted)
+        args = (*args[:3], sqrt_w, args[4])
+        tag = f"level {level} " if self.levels > 1 else ""
+        solver = _with_verbose(solver, self.verbose, model, args[-1], tag)
+        solution, info = run_stage(
+            "fit_starts", fit_starts, model, solver, y0s, args, self.max_steps
+        )
+        # A handful of small arrays, in one go.
+        return model, solution, jax.device_get(info), args, (band, wanted)
+
+
+def _solvers(solver, dtype, verbose):
+    """The full-resolution and coarse-level solvers (the default, or the user's for both)."""
+    if solver is None:
+        tol = _default_tol(dtype)
+        solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+        # A coarse level's minimum differs from the full-resolution one by the downsampling's
+        # model error, so it is solved only to `_COARSE_TOL` (see `strategies.py`).
+        coarse_solver = optx.LevenbergMarquardt(rtol=_COARSE_TOL, atol=_COARSE_TOL)
+    else:
+        coarse_solver = solver
+    if verbose is not False and not hasattr(solver, "verbose"):
+        raise ValueError(
+            f"verbose needs a solver with a `verbose` field, got {type(solver).__name__}"
+        )
+    return solver, coarse_solver
+
+
+def _coarse_to_fine(run: _Run, rows0: np.ndarray, window: float):
+    """The starts of the full-resolution solve: the parameter vectors `(S, P)` and their lens rows
+    `(S, T, 4)`.
+
+    Coarse-to-fine: the multi-start solve runs on the coarsest level, and each finer level starts
+    from the level below's solution (and a near-tie alternative, if any); the last level is the
+    full-resolution problem with the full tolerance (`_full_resolution`), so the answer and its
+    statistics are those of the full-resolution fit. With one level: the starts themselves.
+    """
+    p = run.problem
+    y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.exposure)
+    if run.levels == 1:
+        return y0_init, rows0
+    pyr = [(p.image, p.depth, p.targets, p.sqrt_w, p.b)]
+    for _ in range(run.levels - 1):
+        pyr.append(_downsample(*pyr[-1], p.ratio))
+    y0s, rows = y0_init, rows0  # rows: the current starts' lenses, at the full-resolution pitch
+    for lev in range(run.levels - 1, 0, -1):
+        im_l, dep_l, tg_l, sw_l, b_l = pyr[lev]
+        # Shapes and values stay numpy; the layout keeps the full-resolution bound on f at every
+        # level, so that a parameter vector means the same lens on every level.
+        layout_l = dataclasses.replace(p.layout, base=b_l.astype(p.dtype))
+        scale = 2.0**lev
+        if run.max_radius is not None:
+            win_l = window / scale  # the same extent in the scene as the full-resolution window
+        else:
+            rows_l = np.asarray(rows, np.float64).copy()
+            rows_l[..., 3] = rows_l[..., 3] * scale
+            r_l = run.forward.max_circle(rows_l, np.asarray(dep_l, np.float64))
+            win_l = window_for(r_l, float(max(tg_l.shape[1:3])))
+        args_l = (im_l, dep_l, tg_l, sw_l, layout_l)
+        # (A coarse level whose band would leave no pixel keeps them all; only its starts matter.)
+        _, _, info_l, _, _ = run.solve(win_l, y0s, args_l, lev, run.coarse_solver)
+        y0s, rows = _next_starts(info_l, p.b, y0s, p.spec, layout_l)  # at full-resolution pitch
+    # The init is refined at full resolution too: a coarse level's model error can move every
+    # start into a wrong basin with the lowest coarse loss (seen on a depth-steps scene with a
+    # fine texture: all four starts went to N = 17, d_f = 0.42 at 48 x 48, while the init
+    # converges to the truth at 96 x 96 with a quarter of that loss), and the full-resolution
+    # loss, not the coarse one, decides between them.
+    y0s = np.concatenate([y0s, y0_init[:1]], axis=0)
+    rows = np.concatenate([rows, rows0[:1]], axis=0)
+    return y0s, rows
+
+
+def _full_resolution(run: _Run, y0s, rows: np.ndarray, window: float):
+    """The full-resolution multi-start solve, refitted (up to twice) with a larger window when
+    the automatic one turns out too small for the solution's circles.
+
+    Every refit leaves out the border band of its own window. Returns the residual model, the
+    chosen solution (for `finish`), its `info`, the largest fitted circle (px), the final window
+    (px), the notes, the `args` solved (weights with the band applied) and the band (px)."""
+    p = run.problem
+    cap = float(max(p.photo))
+    if run.levels > 1 and run.max_radius is None:
+        window = window_for(run.forward.max_circle(rows, p.d), cap)
+    notes = []
+    model, solution, info, args, (band, wanted) = run.solve(window, y0s, p.args, 0, run.solver)
+    r_final = run.forward.max_circle(np.asarray(info["natural"], np.float64), p.d)
+    for _ in range(2):
+        if r_final <= window or run.max_radius is not None:
+            break
+        notes.append(
+            f"the window {window:g} px was too small for the fitted circles ({r_final:.3g} px); refitted"
+        )
+        window = window_for(r_final, max(cap, 1.5 * r_final + 1.0))
+        best = int(info["best"])
+        y0s = np.concatenate([info["ys"][best][None], info["ys"]], axis=0)
+        model, solution, info, args, (band, wanted) = run.solve(window, y0s, p.args, 0, run.solver)
+        r_final = run.forward.max_circle(np.asarray(info["natural"], np.float64), p.d)
+    solved = _settle_at_infinity(run, window, (model, solution, info, args))
+    if solved is not None:
+        model, solution, info, args, note = solved
+        notes.append(note)
+        r_final = run.forward.max_circle(np.asarray(info["natural"], np.float64), p.d)
+    if band != wanted:
+        notes.append(
+            f"the border band of {wanted} px (where light from outside the frame lands) leaves no "
+            "pixel with non-zero weight: fitted with every pixel (border 0), so the pixels near "
+            "the edges, which lack that light, bias the fit; use a larger image"
+        )
+    return model, solution, info, r_final, window, notes, args, band
+
+
+def _fields_text(names, theta) -> str:
+    """`name=value` for solution slots `theta` (statistical units: the focus as its power), the
+    focus shown as a distance (m; `inf` at power 0)."""
+    parts = []
+    for n, v in zip(names, np.asarray(theta, np.float64)):
+        if n.startswith("focus_distance"):
+            v = np.inf if v <= 0 else 1 / v
+        parts.append(f"{n}={v:.5g}")
+    return ", ".join(parts)
+
+
+def _settle_at_infinity(run: _Run, window: float, solved):
+    """Focus at infinity as an active bound: `None`, or a better solve settled there and a note.
+
+    Where the data pull a free focus beyond infinity (`dL/dw > 0` at `w = 0`, `layout.py`) the
+    loss has a kink at `y = 0`, on which Levenberg-Marquardt cannot settle: it cycles across it,
+    and the other fields stall with it (a start at infinity with the wrong `N` never leaves).
+    For the starts whose focus ended near infinity (`_NEAR_INFINITY`, converged or not) this
+    does what a bound-constrained method would, on the same
+    compiled stage: (1) solve with those foci fixed at infinity (a layout whose focus slots
+    nobody reads: data, not code); (2) the pull `dL/dw` at the best such solution with them free
+    again (`restate`); (3) every pull `>= 0`: the bound is active and that is the solution, with
+    its statistics taken with the focus free; else solve with the focus free from there, the data
+    pulling it in. The result replaces the first solve's where its loss is lower (`_better`).
+    """
+    _, _, info0, _ = solved
+    p = run.problem
+    src, use = np.asarray(p.layout.src), np.asarray(p.layout.use)
+    slots = np.unique(src[:, 2][use[:, 2]])  # the free focus slots
+    ys = np.array(info0["ys"])
+    near = np.abs(ys[:, slots]) <= _NEAR_INFINITY  # (starts, slots)
+    if not np.any(near):
+        return None
+    loss = np.where(near.any(axis=1), info0["loss"], np.inf)
+    fix = slots[near[int(np.argmin(loss))]]  # those of the lowest-loss start near infinity
+    fixed = use[:, 2] & np.isin(src[:, 2], fix)
+    base, use_fixed = np.array(p.layout.base), use.copy()
+    base[fixed, 2], use_fixed[fixed, 2] = np.inf, False
+    layout = dataclasses.replace(p.layout, base=base, use=use_fixed)
+    ys[:, fix] = 0
+    model, solution, info, args, _ = run.solve(window, ys, (*p.args[:4], layout), 0, run.solver)
+    y = solution[0]
+    args = (*args[:4], p.layout)  # the band applied, the focus free again
+    residual, theta, jac, g = run_stage("restate", restate, model, y, args)
+    pull = np.asarray(jac, np.float64)[:, fix].T @ np.asarray(residual, np.float64)
+    names = ", ".join(p.spec.names[p.spec.used.index(int(k))] for k in fix)
+    if np.all(pull >= 0):
+        info = {**info, "natural": np.asarray(model.natural(jnp.asarray(y), p.layout))}
+        solution = (y, solution[1], solution[2], residual, theta, jac, g)
+        note = f"{names} fitted at infinity: the data pull it no closer (focus at infinity bounds a lens)"
+    else:
+        model, solution, info, args, _ = run.solve(window, info["ys"], p.args, 0, run.solver)
+        note = f"{names} solved again from focus at infinity"
+    return (model, solution, info, args, note) if _better(info, info0) else None
+
+
+def _better(new, old) -> bool:
+    """Whether solve `new`'s best start beats `old`'s: a lower loss, or a tie (to 1e-9) that
+    converged where the other did not."""
+    bn, bo = int(new["best"]), int(old["best"])
+    ln, lo = float(new["loss"][bn]), float(old["loss"][bo])
+    tie = ln <= lo * (1 + 1e-9) and lo <= ln * (1 + 1e-9)
+    converged = bool(new["converged"][bn]) and not bool(old["converged"][bo])
+    return (ln < lo and not tie) or (tie and converged)
+
+
+def _ambiguity(info, p: Problem) -> str | None:
+    """The near/far ambiguity: another converged start at a distinct lens, with a loss the noise
+    cannot tell from the best one (within ~2 sigma^2 per parameter, or rounding when noise-free).
+    Returns the note naming it, or None."""
+    loss, converged, best = info["loss"], info["converged"], int(info["best"])
+    if len(loss) < 2:
+        return None
+    spec = p.spec
+    used = list(spec.used)
+    theta = np.asarray(info["theta"], np.float64)[:, used]
+    floor = np.asarray(theta_floor(p.layout, spec.exposure), np.float64)[used]
+    sigma2 = float(info["sigma"]) ** 2
+    n_p = len(used)
+    floor_loss = float(jnp.finfo(p.dtype).eps) * float(
+        np.sum(np.asarray(p.targets, np.float64) ** 2)
+    )
+    se = np.sqrt(np.maximum(np.asarray(info["variance"], np.float64), 0))
+    for i in np.argsort(loss):
+        if i == best or not converged[i]:
+            continue
+        tie = loss[i] - loss[best] <= 2.0 * sigma2 * n_p + 10 * floor_loss
+        if tie and distinct(theta[i], theta[best], floor, slack=10 * se):
+            alt = _fields_text(spec.names, theta[i])
+            return (
+                f"another start converged to {alt} with loss {loss[i]:.4g} (best {loss[best]:.4g})"
+            )
+    return None
+
+
+def _undetermined(info, spec) -> tuple[str, ...]:
+    """The free fields (without target index) whose variance at the solution is infinite."""
+    var = np.asarray(info["variance"], np.float64)
+    bad = {n.split("[")[0] for n, v in zip(spec.names, var) if not np.isfinite(v)}
+    return tuple(n for n in (*LENS_FIELDS, "gain", "offset") if n in bad)
+
+
+def _at_infinity(run: _Run, rows: np.ndarray) -> bool:
+    """Whether every target's focus is at (or near) infinity: moving it to infinity changes no
+    circle by more than 1 % of the largest (the circle of a point at infinity, `K`, is under 1 %
+    of the largest circle in the scene)."""
+    far = np.array([np.inf])
+    rows = np.asarray(rows, np.float64)
+    return all(
+        run.forward.max_circle(r, far) <= 0.01 * run.forward.max_circle(r, run.problem.d)
+        for r in rows
+    )
+
+
+def _infinity_notes(result: FitResult, spec) -> list[str]:
+    """Notes on free focus distances consistent with infinity (power within one standard error
+    of 0): their `stderr` is `inf`; the power and its standard error say what is known."""
+    if "focus_distance" not in spec.free:
+        return []
+    power = np.asarray(result.lenses.focus_power, np.float64).reshape(-1)
+    se = np.broadcast_to(np.asarray(result.focus_power_stderr, np.float64).reshape(-1), power.shape)
+    d_f = np.asarray(result.lenses.focus_distance, np.float64).reshape(-1)
+    ts = range(1 if "focus_distance" in spec.shared else len(power))
+    notes = []
+    for t in ts:
+        if power[t] <= se[t]:
+            tag = f"[{t}]" if spec.n_targets > 1 and "focus_distance" not in spec.shared else ""
+            notes.append(
+                f"focus_distance{tag} = {d_f[t]:.4g} m is consistent with focus at infinity "
+                f"(focus power {power[t]:.3g} +- {se[t]:.2g} dpt): it has no finite standard error"
+            )
+    return notes
+
+
+def _verdict(run: _Run, result: FitResult, info, r_final, window, notes, allow_degenerate):
+    """The final status (ambiguity and window found on the host), the notes, and the
+    `ValueError` for a free set the data cannot determine (unless `allow_degenerate`)."""
+    p = run.problem
+    spec = p.spec
+    code = code_of(info["status"])
+    alt = _ambiguity(info, p) if code == _SUCCESSFUL else None
+    if alt is not None:
+        code = _AMBIGUOUS
+        notes.append(alt)
+    if r_final > window:
+        code = _WINDOW if code == _SUCCESSFUL else code
+        notes.append(
+            f"the fitted lens makes circles up to {r_final:.3g} px but max_radius={window:g}"
+        )
+    if code in (_DEGENERATE, _DEAD_ZONE):
+        why = (
+            code,
+            spec.free,
+            spec.shared,
+            spec.n_targets,
+            _undetermined(info, spec),
+            _at_infinity(run, info["natural"]),
+            float(info["condition"]),
+        )
+        if not allow_degenerate:
+            raise ValueError(_degeneracy_text(*why))
+        if code == _DEGENERATE:
+            notes.append(
+                f"free={spec.free}, shared={spec.shared}, {spec.n_targets} target(s): "
+                + degeneracy_reason(*why)
+            )
+    elif code in (_SUCCESSFUL, _AMBIGUOUS, _WINDOW):
+        notes.extend(_infinity_notes(result, spec))
+    if code == _MAX_STEPS:
+        notes.insert(0, f"max_steps={run.max_steps}")
+    text = "; ".join(notes)
+    if code == code_of(info["status"]):
+        return dataclasses.replace(result, notes=text, levels=run.levels)
+    return dataclasses.replace(
+        result,
+        status=member(code),
+        success=jnp.asarray(code == _SUCCESSFUL),
+        notes=text,
+        levels=run.levels,
+    )
+
+
+def _error_reason(err: BaseException) -> str:
+    """The first line of an error's message that says what went wrong: equinox's run-time error
+    message (after its preamble on where the stack is), else the first non-empty line."""
+    text = str(err)
+    found = re.search(r"EquinoxRuntimeError: *(\S.*)", text)
+    if found:
+        return found.group(1).strip()
+    return next((line.strip() for line in text.splitlines() if line.strip()), type(err).__name__)
+
+
+def _failed(run: _Run, err: BaseException, window: float) -> FitResult:
+    """A `FitResult` for a solve that raised `err`: the init lens(es), NaN statistics, status
+    `solver_failed` and the reason in the notes."""
+    p, spec = run.problem, run.problem.spec
+    t, dtype = spec.n_targets, p.dtype
+    nan = np.full((t,), np.nan, dtype)
+    one = (lambda x: x[0]) if p.single else (lambda x: x)
+    names = spec.free + (("gain", "offset") if spec.exposure else ())
+    sqrt_w, band = apply_border(p.sqrt_w, level_band(run.border, run.forward, window, 0))
+    live = np.any(sqrt_w > 0, axis=-1) if sqrt_w.ndim == 4 else sqrt_w > 0
+    return FitResult(
+        lenses=ThinLens(*(jnp.asarray(p.base[:, i]) for i in range(4))),
+        stderr={name: jnp.asarray(one(nan)) for name in names},
+        covariance=jnp.full((len(spec.used),) * 2, np.nan, dtype),
+        gain=jnp.ones((t,), dtype),
+        offset=jnp.zeros((t,), dtype),
+        loss=jnp.asarray(np.nan, dtype),
+        sigma=jnp.asarray(np.nan, dtype),
+        num_steps=jnp.asarray(0),
+        condition=jnp.asarray(np.nan, dtype),
+        status=RESULTS.solver_failed,
+        success=jnp.asarray(False),
+        focus_power_stderr=jnp.asarray(one(nan)),
+        pixels_used=jnp.asarray(int(np.sum(live)), jnp.int32),
+        names=spec.names,
+        notes=f"{type(err).__name__} while solving: {_error_reason(err)}",
+        max_radius=window,
+        border=band,
+        levels=run.levels,
+    )
+
+
+def fit_lens(
+    image: ArrayLike,
+    depth: ArrayLike,
+    targets: ArrayLike | Sequence[ArrayLike],
+    init: ThinLens | Sequence[ThinLens],
+    *,
+    free: Sequence[str] = ("focus_distance", "f_number"),
+    shared: Sequence[str] = (),
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 100,
+    weight: ArrayLike | None = None,
+    max_radius: float | None = None,
+    allow_degenerate: bool = False,
+    exposure: bool = False,
+    starts: int | None = None,
+    verbose: bool | Callable[..., None] = False,
+    model: AbstractForwardModel | None = None,
+    method: str | None = None,
+    footprint: bool | None = None,
+    pyramid: int | None = None,
+    downsample: int | None = None,
+    border: bool | str | int = "auto",
+) -> FitResult:
+    r"""Recover lens parameters from defocused photos of a scene with known image and depth.
+
+    Minimises
+
+    $$\sum_t \sum_p w_p \left( g_t\,\mathrm{model}(I, Z, \mathrm{lens}_t)_p + o_t - T_{t,p}
+      \right)^2$$
+
+    (linear light; `model` is `jaxdof.render` by default) over the `free` lens fields (and,
+    with `exposure`, a gain `g_t` and offset `o_t` per target) with an optimistix least-squares
+    solver, in unconstrained coordinates (`log N`, a bounded logit of `f`, and for the focus the
+    focus power scaled to the scene, `fcap / (d_f - f)` with `fcap` just under the nearest depth,
+    in which focus at infinity is the ordinary point 0), from a few starts, and reports the best
+    fit with standard errors. The sums run over the photo pixels that light from outside the
+    frame cannot reach (`border`).
+
+    **Arguments:**
+
+    - `image`: the all-in-focus linear-light image, `(H, W)` or `(H, W, C)`.
+    - `depth`: z-depth of every pixel (m), `(H, W)`, beyond the focal length; `inf` allowed.
+    - `targets`: the defocused photo(s): one image of the photo's shape (the image's, or
+      `model.photo_shape(image.shape)`), a sequence of them, or an array `(T, *photo)`.
+    - `init`: a `ThinLens` (used for every target) or one per target: the start, and the value of
+      every field that is not free (`focus_distance = inf`, focused at infinity, included). Its
+      `pixel_pitch` is always fixed.
+    - `free`: the fields to fit, among `"focal_length"`, `"f_number"`, `"focus_distance"`.
+    - `shared`: the free fields that take one value across all targets (a focus bracket:
+      `shared=("focal_length", "f_number")`, with `focus_distance` free per target).
+    - `solver`: any optimistix least-squares solver; default
+      `optx.LevenbergMarquardt(rtol=tol, atol=tol)` with `tol = 1e-8` (float64) or `1e-5`
+      (float32): steps in the log coordinates below that are at float32's rounding floor.
+    - `max_steps`: solver step limit per start.
+    - `weight`: optional per-pixel weight `>= 0` (an inverse variance, or a 0/1 mask), `(H, W)`,
+      `(T, H, W)`, or the photo's/targets' shape.
+    - `max_radius`: the filter window (pixels, static). `None` picks one with headroom over the
+      circles of every start and refits with a larger one if the solution's circles outgrow it.
+      Circles above the window are clamped (see `jaxdof.coc_filter`), so a given value must
+      exceed the true largest circle.
+    - `allow_degenerate`: return a fit whose free fields the data cannot all determine (with
+      `success=False` and `inf` standard errors for the undetermined fields) instead of raising.
+    - `exposure`: also fit a gain and an offset per target (nuisance parameters).
+    - `starts`: number of starting points (default 4 when the focus distance is free, else 3): the
+      `init` lens, then focus distances spread evenly in diopters over the scene's depth range
+      (keeping `K` through `N` where possible), which covers the near/far ambiguity; with the focus
+      distance fixed, `K` spread by factors of 2. All starts run as one vmapped solve.
+    - `verbose`: `True` prints step, loss and the current lens of every start while solving; a
+      callable is passed to the optimistix solver as its `verbose` (it receives `(name, value)`
+      pairs, with `y` in the solver's coordinates).
+    - `model`: the forward model, a `jaxdof.AbstractForwardModel`; default
+      `jaxdof.DefocusModel(method=method, footprint=footprint, downsample=downsample)`. A model of
+      your own (a subclass) runs through the same solve, compiled for it.
+    - `method`, `footprint`, `downsample`: the default model's options, only without `model`
+      (giving both is a `ValueError`); see `jaxdof.DefocusModel`. `method` (default `"soft"`, the
+      exact coverage) must be differentiable with respect to the radius; `footprint` (default
+      off) is the pixel-footprint correction; `downsample` (default 1): the image and depth are
+      this many times the targets' resolution in each axis, and targets, weights, the window and
+      the circles are in the photo's pixels. An all-in-focus image at 2x the photo's resolution
+      (a pixel-shift capture) carries the detail inside each photo pixel that blur of circles of
+      a pixel or two depends on (`fits/results/raytraced.md`); each render costs about `s^2`
+      times more.
+    - `pyramid`: coarse-to-fine levels (a Python int; `None`: automatic; `0` or `1`: full
+      resolution only). Level `l` halves the images `l` times (2 x 2 box averages in linear light;
+      depth averaged in inverse depth, weights by their harmonic mean) and doubles the pixel pitch
+      (so every circle, and the window, halves). The starts are solved on the coarsest level,
+      where a render costs `4^-l` of the full one; every finer level starts from the solution of
+      the level below (and a near-tie alternative), the full-resolution level also from `init`
+      itself (a coarse level's model error can favour a wrong basin; the full-resolution loss
+      decides), and the last is the full-resolution problem with the full tolerance, so
+      the result (lens, standard errors, statistics) is the full-resolution fit's, to solver
+      tolerance. `None` halves while the shorter side stays at least 24 px and the `init` lens's
+      largest circle at least 1 px (twice the half-pixel dead zone, where the render ignores the
+      lens), and stays at full resolution with `starts=1` (the init is solved there anyway).
+      `FitResult.levels` says how many levels ran; `num_steps` counts full-resolution steps only.
+    - `border`: which pixels along the photo's edges to leave out of the residual. A photo pixel
+      within a circle's reach of the edge receives light from outside the frame, which the
+      all-in-focus image lacks: the model puts zeros there (or, with `normalize`, rescales the
+      light that is in the frame), and neither is that light, so those pixels bias the fit (on a
+      ray-traced slanted plane, `K` came out 8-12 % small with them, 1.8 % without).
+      `"auto"` (default) or `True`: leave out the band the window reaches, the forward model's
+      `border_band(max_radius)` photo pixels (`ceil(max_radius)` for the default model, at every
+      `downsample`; one more with `footprint`), recomputed with the window (refits, each pyramid
+      level with its own) for every target. An int: that band in photo pixels (halved per
+      pyramid level, rounded up). `False` or `0`: keep every pixel. The band is a 0 weight
+      (multiplied into `weight`), so it shares the compiled solve. If it would leave no pixel
+      with non-zero weight, the fit keeps every pixel and says so in `message`.
+      `FitResult.border` is the band used (px), `FitResult.pixels_used` the pixels fitted.
+
+    **Returns:** a `FitResult`. `success` is `False`, with the reason in `status` (a
+    `jaxdof.RESULTS` member) and `message`, when the best start did not converge, when distinct
+    lenses fit equally well, when the circles outgrow a given window, when the solver failed
+    (also when running it raised an error, e.g. a forward model's run-time check or a NaN under
+    `jax_debug_nans`: status `solver_failed`, the error's first line in `message`, the init
+    lens), or (with `allow_degenerate`) when the free set is not determined. The best start is
+    the lowest loss (a converged start tied with it preferred), so a start that stopped in a flat
+    region never decides the verdict.
+
+    **Focus at infinity** is an ordinary lens here: an `init` may have `focus_distance = inf`,
+    and a fit may end there (a free focus is reported as at most `1e12` times the nearest depth,
+    the farthest the fit's coordinate represents: circles within `1e-12` of infinity's). The
+    statistics are computed in the focus power `u = 1 / d_f`
+    (diopters): `FitResult.focus_power_stderr` is finite through infinity, and
+    `stderr["focus_distance"] = se(u) / u^2`, or `inf` when `u` is within one standard error of
+    0 (the data cannot rule out infinity; `message` says so).
+
+    **Raises:** `ValueError` for bad inputs (before any solve), and when the data cannot
+    determine the free fields (the column-scaled Jacobian at the best solution is rank
+    deficient), with the reason: `focal_length` and `f_number` both free from one photo (blur
+    depends on the lens only through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity
+    (every circle `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose
+    photos are all focused at infinity); every circle under half a pixel (the render does not
+    depend on the lens, a zero Jacobian); else the undetermined fields by name.
+
+    **Statistics.** With `J` the Jacobian of the weighted residuals at the solution,
+    `cov = sigma^2 (J^T J)^{-1}` with `sigma^2 = SSR / (n - p)` (Gauss-Newton; `n` residuals with
+    non-zero weight, `p` free parameters), mapped from the solver's coordinates to each field's
+    units by the chain rule. For Gaussian pixel noise these are the asymptotic (Cramér-Rao) errors.
+    Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
+    """
+    forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)
+    free, shared = _check_names(free, shared)
+    check_differentiable(forward)
+    if not is_concrete(image, depth, targets, init, weight):
+        raise ValueError(
+            "fit_lens needs concrete inputs (it picks starts and a window, and reports in Python); "
+            "under jit/vmap use jaxdof.solve_lens with a static max_radius."
+        )
+    max_steps, n_starts = _check_options(max_steps, starts, verbose, max_radius, free)
+    band = check_border(border)
+    p = prepare_problem(image, depth, targets, init, weight, forward, free, shared, exposure)
+    levels = _check_pyramid(pyramid, p.photo)
+    solver, coarse_solver = _solvers(solver, p.dtype, verbose)
+    rows0 = start_lenses(p.b, p.d, free=free, starts=n_starts, fcap=p.fcap)
+    if max_radius is None:
+        window = window_for(forward.max_circle(rows0, p.d), float(max(p.photo)))
+    else:
+        window = float(max_radius)
+    if levels is None:
+        # From one start the init is refined at full resolution anyway (`_coarse_to_fine`), so
+        # coarse levels would only add work: measured 0.5-0.7x the full-resolution fit's speed
+        # (fits/recover.py).
+        one = len(rows0) == 1
+        levels = 1 if one else auto_levels(p.photo, forward.max_circle(rows0[:1], p.d))
+    user_window = None if max_radius is None else window
+    run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, levels, band)
+    try:
+        y0s, rows = _coarse_to_fine(run, rows0, window)
+        model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
+            run, y0s, rows, window
+        )
+        result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single)
+        info.update(jax.device_get(stats))
+    except _SOLVER_ERRORS as err:
+        return _failed(run, err, window)
+    result = dataclasses.replace(result, border=used)
+    return _verdict(run, result, info, r_final, window, notes, allow_degenerate)
