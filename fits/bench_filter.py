@@ -7,7 +7,7 @@ any gather over the same window, the same taps with constant weights?
 Measured (float32, jit, `block_until_ready`, one warm-up call, median of `--repeats` calls):
 
 - `soft`: `jaxdof.coc_filter(image, radius, max_radius=R)`, radii uniform in `[0, R]`.
-- `const gather`: the plain per-tap gather loop (`jaxdof._filters.soft.gather`, one offset per
+- `const gather`: the plain per-tap gather loop (`jaxdof.internal.gather`, one offset per
   checkpointed scan step) with a constant weight per tap: the floor the soft filter is compared
   with (issue 2's goal: soft <= 3x this).
 - `const mirrored`: the soft filter's own loop (`symmetric_gather`: one weight per mirror class,
@@ -25,80 +25,25 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import pathlib
-import platform
-import statistics
-import sys
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import (
+    RESULTS,
+    command,
+    compile_all,
+    load_average,
+    machine_info,
+    medians_in_turns,
+    write_markdown,
+)
 
 import jaxdof
-from jaxdof._filters.common import tap_offsets
-from jaxdof._filters.soft import gather, symmetric_gather
 
-
-RESULTS = pathlib.Path(__file__).parent / "results"
-
-
-def machine_info() -> dict[str, str]:
-    """CPU model, core count, load, library versions and the JAX device: the conditions of a run."""
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = os.getloadavg() if hasattr(os, "getloadavg") else ("?",) * 3
-    return {
-        "cpu": f"{cpu}, {os.cpu_count()} logical cores",
-        "device": ", ".join(f"{d} ({d.device_kind})" for d in jax.devices()),
-        "load average (1, 5, 15 min) at start": ", ".join(f"{x:.1f}" for x in load),
-        "python": platform.python_version(),
-        "jax / jaxlib": f"{jax.__version__} / {jax.lib.__version__}",
-        "jaxdof": jaxdof.__version__,
-        "XLA_FLAGS": os.environ.get("XLA_FLAGS", "(unset)"),
-        # glibc's allocator settings change the soft filter's cost at megapixel sizes (README)
-        "glibc MALLOC_* environment": ", ".join(
-            f"{k}={v}" for k, v in sorted(os.environ.items()) if k.startswith("MALLOC_")
-        )
-        or "(unset)",
-    }
-
-
-def compile_all(fns: dict, *args) -> tuple[dict, dict]:
-    """Compile every `fn` in `fns` on `args`: `({name: compiled}, {name: compile seconds})`."""
-    compiled, seconds = {}, {}
-    for name, fn in fns.items():
-        t0 = time.perf_counter()
-        compiled[name] = jax.jit(fn).lower(*args).compile()
-        seconds[name] = time.perf_counter() - t0
-        jax.block_until_ready(compiled[name](*args))  # warm-up: first touch of the buffers
-    return compiled, seconds
-
-
-def interleaved_medians(compiled: dict, *args, repeats: int) -> dict[str, tuple[float, float]]:
-    """`{name: (median wall s, median CPU s)}`, timing the variants in turns, round after round.
-
-    Interleaving exposes every variant to the same drift in the machine's load, so ratios between
-    them stay meaningful on a shared machine. CPU time (`time.process_time`, all threads) is less
-    sensitive than wall time to other processes' load.
-    """
-    runs: dict[str, list[tuple[float, float]]] = {name: [] for name in compiled}
-    for _ in range(repeats):
-        for name, fn in compiled.items():
-            w0, c0 = time.perf_counter(), time.process_time()
-            jax.block_until_ready(fn(*args))
-            runs[name].append((time.perf_counter() - w0, time.process_time() - c0))
-    return {
-        name: (statistics.median(r[0] for r in rs), statistics.median(r[1] for r in rs))
-        for name, rs in runs.items()
-    }
+# The gather loops the soft filter is compared with (semi-internal).
+from jaxdof.internal import gather, symmetric_gather, tap_offsets
 
 
 def variants(max_radius: float, mirrored_grad: bool = True):
@@ -125,7 +70,7 @@ def variants(max_radius: float, mirrored_grad: bool = True):
     return out
 
 
-def main(argv=None) -> None:
+def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=1024, help="image side, pixels")
     parser.add_argument("--radii", type=float, nargs="+", default=[2.0, 4.0, 8.0, 16.0])
@@ -142,26 +87,27 @@ def main(argv=None) -> None:
         help="skip fwd+grad of `const mirrored` (JAX's own transpose of the mirrored loop; on an "
         "H100 with jax 0.11.2 it fails with an illegal memory access at 1024^2 and R = 4)",
     )
-    args = parser.parse_args(argv)
-    retained = jaxdof.retain_freed_memory() if args.retain_memory else False
+    return parser.parse_args(argv)
 
-    info = machine_info()
-    info["jaxdof.retain_freed_memory()"] = "called, accepted" if retained else "not called"
+
+def measure(size: int, radii, repeats: int, mirrored_grad: bool) -> list[tuple]:
+    """One row per (max radius, variant): `(R, taps, name, wall fwd, wall fwd+grad, CPU fwd, CPU
+    fwd+grad, compile fwd, compile fwd+grad)`, times in seconds per megapixel."""
     rng = np.random.default_rng(0)
-    h = w = args.size
+    h = w = size
     mpix = h * w / 1e6
     image = jnp.asarray(rng.uniform(size=(h, w, 3)), jnp.float32)
     rows = []
-    for max_radius in args.radii:
+    for max_radius in radii:
         radius = jnp.asarray(rng.uniform(0, max_radius, (h, w)), jnp.float32)
         taps = len(tap_offsets(max_radius))
         fns = {}
-        for name, (fwd, both) in variants(max_radius, not args.no_mirrored_grad).items():
+        for name, (fwd, both) in variants(max_radius, mirrored_grad).items():
             fns[(name, "fwd")] = fwd
             if both is not None:
                 fns[(name, "grad")] = both
         compiled, compile_s = compile_all(fns, image, radius)
-        t = interleaved_medians(compiled, image, radius, repeats=args.repeats)
+        t = medians_in_turns(compiled, (image, radius), repeats)
         for name in variants(max_radius):
             (wf, cf), (wg, cg) = t[(name, "fwd")], t.get((name, "grad"), (math.nan, math.nan))
             compile_s.setdefault((name, "grad"), math.nan)
@@ -184,21 +130,22 @@ def main(argv=None) -> None:
                 f"s/MP (compile {compile_s[(name, 'fwd')]:.1f} s / {compile_s[(name, 'grad')]:.1f} s)",
                 flush=True,
             )
-    info["load average (1, 5, 15 min) at end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    return rows
 
+
+def report_lines(rows: list[tuple], size: int, repeats: int, info: dict, argv=None) -> list[str]:
+    """The report: conditions, the table of `measure`'s rows, the variants, the machine."""
     by = {(r[0], r[2]): r for r in rows}
     on_cpu = jax.default_backend() == "cpu"
     clock = "CPU" if on_cpu else "wall"
     lines = [
         "# Soft filter vs a constant-weight gather over the same window",
         "",
-        f"Image {h} x {w} x 3, float32, radii uniform in [0, max_radius], jit. Variants are timed "
-        f"in turns, {args.repeats} rounds after a warm-up; medians, in seconds per megapixel; "
+        f"Image {size} x {size} x 3, float32, radii uniform in [0, max_radius], jit. Variants are "
+        f"timed in turns, {repeats} rounds after a warm-up; medians, in seconds per megapixel; "
         "compile time apart. Wall time and CPU time (all threads of this process) are both shown: "
         "on a shared machine CPU time is the steadier of the two.",
-        "Produced by `python fits/bench_filter.py"
-        + (f" {' '.join(sys.argv[1:] if argv is None else argv)}" if (argv or sys.argv[1:]) else "")
-        + "`. All rows come from one run."
+        f"Produced by `{command('bench_filter.py', argv)}`. All rows come from one run."
         + (
             ""
             if on_cpu
@@ -219,7 +166,7 @@ def main(argv=None) -> None:
             f"| {r:g} | {taps} | {name} | {wf:.4g} | {wg:.4g} | {cf:.4g} | {cg:.4g} | "
             f"{g / f:.2f} | {ratio} | {kf:.1f} / {kg:.1f} |"
         )
-    lines += [
+    return lines + [
         "",
         "- `soft`: `jaxdof.coc_filter` (exact analytic coverage); fwd+grad with respect to image and radius.",
         "- `const gather`: the plain one-tap-per-step gather with constant weights (the floor of "
@@ -229,10 +176,17 @@ def main(argv=None) -> None:
         "## Machine",
         "",
         *[f"- {k}: {v}" for k, v in info.items()],
-        "",
     ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines))
+
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    retained = jaxdof.retain_freed_memory() if args.retain_memory else False
+    info = machine_info()
+    info["jaxdof.retain_freed_memory()"] = "called, accepted" if retained else "not called"
+    rows = measure(args.size, args.radii, args.repeats, not args.no_mirrored_grad)
+    info["load average (1, 5, 15 min) at end"] = load_average()
+    write_markdown(args.out, report_lines(rows, args.size, args.repeats, info, argv))
     print(f"wrote {args.out}")
 
 

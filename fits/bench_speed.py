@@ -17,10 +17,11 @@ Method (float32, jit, radii uniform in `[0, max_radius]`, RGB):
 
 Paths (issue 7, deliverable 2): the exact soft filter has two implementations with the same
 numbers, the dense gather over the window (`path="dense"`, cost ~ R^2) and row spans plus boundary
-taps (`path="spans"`, `jaxdof/_filters/spans.py`, cost ~ R). `--paths` times both, forced, against
-max radius at one image size, in turns (dense fwd, dense fwd+grad, spans fwd, spans fwd+grad, ...),
+taps (`path="spans"`, `jaxdof/_filters/spans.py`, cost ~ R), both reachable through
+`jaxdof.internal.exact_soft_filter(..., path=...)`. `--paths` times both, forced, against max
+radius at one image size, in turns (dense fwd, dense fwd+grad, spans fwd, spans fwd+grad, ...),
 checks they agree, fits the log-log exponent of CPU time between max radius 8 and 64, and reads off
-the crossover that `SPANS_MIN_RADIUS` is set from. Alone (`--paths-only`) it rewrites only its own
+the crossover that `SPANS_MIN_RADIUS` (`jaxdof/_tuning.py`) is set from. Alone (`--paths-only`) it rewrites only its own
 section of `speed.md` and keeps the others.
 
 Writes `fits/results/speed.md` and `fits/results/speed.png`.
@@ -31,36 +32,30 @@ Run: `python fits/bench_speed.py` (defaults below; `--quick` for a smoke run).
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import pathlib
 import statistics
-import sys
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from _common import (
+    RESULTS,
+    command,
+    compile_all,
+    git_state,
+    load_average,
+    load_json,
+    machine_info,
+    save_json,
+    timed_in_turns,
+    write_markdown,
+)
 
 import jaxdof
 
-
-sys.path.insert(0, str(pathlib.Path(__file__).parent))
-from bench_filter import machine_info  # noqa: E402
-
-
-RESULTS = pathlib.Path(__file__).parent / "results"
-
-
-def timed_in_turns(compiled: dict, args: tuple, repeats: int) -> dict[str, list]:
-    """`{name: [(wall s, CPU s), ...]}`: each compiled function called once per round, in turns."""
-    runs = {name: [] for name in compiled}
-    for _ in range(repeats):
-        for name, fn in compiled.items():
-            w0, c0 = time.perf_counter(), time.process_time()
-            jax.block_until_ready(fn(*args))
-            runs[name].append((time.perf_counter() - w0, time.process_time() - c0))
-    return runs
+# Semi-internal: the soft filter forced onto one path, and the tuning table that holds the
+# crossover between the paths (`SPANS_MIN_RADIUS`).
+from jaxdof.internal import exact_soft_filter, tuning
 
 
 def program_bytes(compiled) -> int:
@@ -81,12 +76,10 @@ def measure(size: int, max_radius: float, repeats: int, *, run: bool = True) -> 
     f = lambda i, r: jaxdof.coc_filter(i, r, max_radius=max_radius)
     g = jax.value_and_grad(lambda i, r: jnp.sum(f(i, r) ** 2), argnums=(0, 1))
     res = {"size": size, "R": max_radius}
-    compiled = {}
-    for name, fn in (("fwd", f), ("grad", g)):
-        t0 = time.perf_counter()
-        compiled[name] = jax.jit(fn).lower(image, radius).compile()
-        res[f"compile_{name}"] = time.perf_counter() - t0
-        res[f"mem_{name}"] = program_bytes(compiled[name])
+    compiled, seconds = compile_all({"fwd": f, "grad": g}, image, radius, warm_up=False)
+    for name, c in compiled.items():
+        res[f"compile_{name}"] = seconds[name]
+        res[f"mem_{name}"] = program_bytes(c)
     if not run:
         return res
     for fn in compiled.values():
@@ -101,20 +94,17 @@ def measure(size: int, max_radius: float, repeats: int, *, run: bool = True) -> 
 
 def measure_paths(size: int, max_radius: float, repeats: int) -> dict:
     """Time the dense and span paths of the exact soft filter, forced, at one size and radius."""
-    from jaxdof._filters.spans import exact_soft_filter
-
     rng = np.random.default_rng(0)
     image = jnp.asarray(rng.uniform(size=(size, size, 3)), jnp.float32)
     radius = jnp.asarray(rng.uniform(0, max_radius, (size, size)), jnp.float32)
     res = {"size": size, "R": max_radius}
-    compiled = {}
+    fns = {}
     for path in ("dense", "spans"):
         f = lambda i, r, path=path: exact_soft_filter(i, r, max_radius=max_radius, path=path)  # noqa: E731
         g = jax.value_and_grad(lambda i, r, f=f: jnp.sum(f(i, r) ** 2), argnums=(0, 1))
-        for name, fn in (("fwd", f), ("grad", g)):
-            t0 = time.perf_counter()
-            compiled[f"{path}_{name}"] = jax.jit(fn).lower(image, radius).compile()
-            res[f"compile_{path}_{name}"] = time.perf_counter() - t0
+        fns[f"{path}_fwd"], fns[f"{path}_grad"] = f, g
+    compiled, seconds = compile_all(fns, image, radius, warm_up=False)
+    res.update({f"compile_{k}": v for k, v in seconds.items()})
     outs = {k: jax.block_until_ready(fn(image, radius)) for k, fn in compiled.items()}
     # the two paths compute the same sum: record how far apart they are (float32)
     res["max_abs_diff_fwd"] = float(jnp.max(jnp.abs(outs["dense_fwd"] - outs["spans_fwd"])))
@@ -152,16 +142,14 @@ PATHS_BEGIN = "<!-- paths: begin -->"
 PATHS_END = "<!-- paths: end -->"
 
 
-def paths_section(rows: list, size: int, repeats: int, info: dict, command: str) -> list[str]:
+def paths_section(rows: list, size: int, repeats: int, info: dict, command_line: str) -> list[str]:
     """Markdown for the dense-vs-spans comparison: table, exponents, crossover."""
-    from jaxdof._filters.spans import SPANS_MIN_RADIUS
-
     lines = [
         PATHS_BEGIN,
         f"## Dense gather vs row spans against max radius ({size}^2 RGB float32)",
         "",
-        f"Produced by `{command}`: the exact soft filter forced onto each path "
-        "(`jaxdof._filters.spans.exact_soft_filter(..., path=...)`), radii uniform in "
+        f"Produced by `{command_line}`: the exact soft filter forced onto each path "
+        "(`jaxdof.internal.exact_soft_filter(..., path=...)`), radii uniform in "
         f"[0, max_radius], jit, medians of {repeats} calls timed in turns (dense fwd, dense "
         "fwd+grad, spans fwd, spans fwd+grad) after a warm-up, seconds per call; compile apart. "
         "CPU = this process's CPU time (all threads), the steadier figure on a shared machine. "
@@ -200,7 +188,7 @@ def paths_section(rows: list, size: int, repeats: int, info: dict, command: str)
     lines += [
         "Crossover (CPU time, forward and fwd+grad both faster on spans from this max radius on, "
         f"among those swept): **{cross if cross is None else f'{cross:g}'}**. "
-        f"`SPANS_MIN_RADIUS` in `jaxdof/_filters/spans.py` is {SPANS_MIN_RADIUS:g}: "
+        f"`SPANS_MIN_RADIUS` in `jaxdof/_tuning.py` is {tuning.SPANS_MIN_RADIUS:g}: "
         '`coc_filter(method="soft")` takes the span path from there on.',
         "",
         "Machine for this section: "
@@ -209,26 +197,6 @@ def paths_section(rows: list, size: int, repeats: int, info: dict, command: str)
         PATHS_END,
     ]
     return lines
-
-
-def git_state() -> str:
-    """Commit of the checkout and the library files with uncommitted edits (what was timed)."""
-    import subprocess
-
-    root = pathlib.Path(__file__).resolve().parent.parent
-    try:
-        head = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "diff", "--name-only", "HEAD", "--", "jaxdof"],
-            cwd=root,
-            capture_output=True,
-            text=True,
-        ).stdout.split()
-    except OSError:
-        return "unknown"
-    return head + (f" + uncommitted edits to {', '.join(dirty)}" if dirty else "")
 
 
 def slope(xs, ys) -> float:
@@ -254,7 +222,7 @@ HEADER = [
 ]
 
 
-def main(argv=None) -> None:
+def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[256, 512, 1024, 2048])
     parser.add_argument(
@@ -282,58 +250,44 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=pathlib.Path, default=RESULTS / "speed.md")
     parser.add_argument("--replot", action="store_true", help="redraw the plot from the saved JSON")
     args = parser.parse_args(argv)
-    if args.replot:
-        saved = json.loads(args.out.with_suffix(".json").read_text())
-        paths = saved.get("paths", {}).get("rows")
-        plot(
-            saved["by_size"], saved["by_radius"], saved["info"], args.out.with_suffix(".png"), paths
-        )
-        return
     if args.quick:
         args.sizes, args.radii, args.radius_size, args.repeats = [64, 128], [2, 4], 64, 1
         args.path_radii, args.path_size = [4, 8], 64
-    command = "python fits/bench_speed.py" + (f" {' '.join(argv)}" if argv else "")
-    if argv is None and len(sys.argv) > 1:
-        command = "python fits/bench_speed.py " + " ".join(sys.argv[1:])
+    return args
 
-    info = machine_info()
-    info["git"] = git_state()
-    by_path = []
-    for r in args.path_radii:
-        by_path.append(measure_paths(args.path_size, r, args.repeats))
-        print(fmt_path_row(by_path[-1]), flush=True)
-    if args.paths_only:
-        info["load average (1, 5, 15 min) at end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-        section = "\n".join(paths_section(by_path, args.path_size, args.repeats, info, command))
-        text = args.out.read_text() if args.out.exists() else ""
-        if PATHS_BEGIN in text:
-            head, rest = text.split(PATHS_BEGIN, 1)
-            text = head + section + rest.split(PATHS_END, 1)[1]
-        else:
-            text = text.rstrip("\n") + "\n\n" + section + "\n"
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-        saved_json = args.out.with_suffix(".json")
-        saved = json.loads(saved_json.read_text()) if saved_json.exists() else {}
-        saved["paths"] = {"rows": by_path, "info": info, "command": command}
-        saved_json.write_text(json.dumps(saved, indent=1))
-        if "by_size" in saved:
-            png = args.out.with_suffix(".png")
-            plot(saved["by_size"], saved["by_radius"], saved["info"], png, by_path)
-        print(f"wrote {args.out}")
-        return
-    by_size = []
-    for size in args.sizes:
-        by_size.append(measure(size, args.size_radius, args.repeats))
-        print(fmt_row(by_size[-1]), flush=True)
-    by_radius = []
-    for r in args.radii:
-        by_radius.append(measure(args.radius_size, r, args.repeats))
-        print(fmt_row(by_radius[-1]), flush=True)
-    # Issue 7's memory goal, on the image it names: compile only (XLA's buffer assignment).
-    mem = measure(64 if args.quick else 1024, 16.0, 0, run=False)
-    info["load average (1, 5, 15 min) at end"] = ", ".join(f"{x:.1f}" for x in os.getloadavg())
 
+def replot(out: pathlib.Path) -> None:
+    """Redraw the plot from the saved JSON."""
+    saved = load_json(out.with_suffix(".json"))
+    paths = saved.get("paths", {}).get("rows")
+    plot(saved["by_size"], saved["by_radius"], saved["info"], out.with_suffix(".png"), paths)
+
+
+def rewrite_paths_section(
+    out: pathlib.Path, by_path: list, args: argparse.Namespace, info: dict, command_line: str
+) -> None:
+    """`--paths-only`: replace the paths section of `out` (and the `paths` entry of its JSON),
+    keeping the other sections; redraw the plot when the saved sweeps are there."""
+    section = "\n".join(paths_section(by_path, args.path_size, args.repeats, info, command_line))
+    text = out.read_text() if out.exists() else ""
+    if PATHS_BEGIN in text:
+        head, rest = text.split(PATHS_BEGIN, 1)
+        text = head + section + rest.split(PATHS_END, 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n" + section + "\n"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(text)
+    saved_json = out.with_suffix(".json")
+    saved = load_json(saved_json) if saved_json.exists() else {}
+    saved["paths"] = {"rows": by_path, "info": info, "command": command_line}
+    save_json(saved_json, saved, indent=1)
+    if "by_size" in saved:
+        plot(saved["by_size"], saved["by_radius"], saved["info"], out.with_suffix(".png"), by_path)
+    print(f"wrote {out}")
+
+
+def sweep_lines(by_size: list, by_radius: list, args: argparse.Namespace, command_line: str):
+    """The report's head and its two sweeps (image size, max radius) with the radius exponent."""
     big = [r for r in by_radius if r["R"] >= 8]
     exps = {}
     if len(big) >= 2:
@@ -342,7 +296,7 @@ def main(argv=None) -> None:
     lines = [
         "# Speed and memory of the soft filter against image size and blur radius",
         "",
-        f"Produced by `{command}`; float32, RGB, radii uniform in [0, max_radius], jit; medians of {args.repeats} calls "
+        f"Produced by `{command_line}`; float32, RGB, radii uniform in [0, max_radius], jit; medians of {args.repeats} calls "
         "(forward and fwd+grad timed in turns after a warm-up), per megapixel; compile time apart; "
         "memory from XLA's buffer assignment of the compiled program (arguments + outputs + "
         "temporaries). fwd+grad is `value_and_grad` of `sum(out^2)` in image and radius.",
@@ -370,9 +324,12 @@ def main(argv=None) -> None:
             "section on the two paths below separates them.",
             "",
         ]
-    lines += [*paths_section(by_path, args.path_size, args.repeats, info, command), ""]
+    return lines
+
+
+def memory_lines(mem: dict) -> list[str]:
     ratio = mem["mem_grad"] / mem["mem_fwd"]
-    lines += [
+    return [
         f"## Memory, reverse vs forward ({mem['size']}^2 RGB, max_radius {mem['R']:g})",
         "",
         f"Forward program {mem['mem_fwd'] / 2**20:.1f} MiB, value_and_grad program "
@@ -380,27 +337,49 @@ def main(argv=None) -> None:
         "offsets is a checkpointed `lax.scan`: reverse mode stores no per-offset weights and "
         "recomputes each step's weights in the backward pass.",
         "",
-        "## Machine",
-        "",
-        *[f"- {k}: {v}" for k, v in info.items()],
-        "",
     ]
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text("\n".join(lines))
-    print(f"wrote {args.out}")
 
-    args.out.with_suffix(".json").write_text(
-        json.dumps(
-            {
-                "by_size": by_size,
-                "by_radius": by_radius,
-                "memory": mem,
-                "info": info,
-                "paths": {"rows": by_path, "info": info, "command": command},
-            },
-            indent=1,
-        )
-    )
+
+def main(argv=None) -> None:
+    args = parse_args(argv)
+    if args.replot:
+        return replot(args.out)
+    command_line = command("bench_speed.py", argv)
+    info = machine_info()
+    info["git"] = git_state()
+    by_path = []
+    for r in args.path_radii:
+        by_path.append(measure_paths(args.path_size, r, args.repeats))
+        print(fmt_path_row(by_path[-1]), flush=True)
+    if args.paths_only:
+        info["load average (1, 5, 15 min) at end"] = load_average()
+        return rewrite_paths_section(args.out, by_path, args, info, command_line)
+    by_size = []
+    for size in args.sizes:
+        by_size.append(measure(size, args.size_radius, args.repeats))
+        print(fmt_row(by_size[-1]), flush=True)
+    by_radius = []
+    for r in args.radii:
+        by_radius.append(measure(args.radius_size, r, args.repeats))
+        print(fmt_row(by_radius[-1]), flush=True)
+    # Issue 7's memory goal, on the image it names: compile only (XLA's buffer assignment).
+    mem = measure(64 if args.quick else 1024, 16.0, 0, run=False)
+    info["load average (1, 5, 15 min) at end"] = load_average()
+
+    lines = sweep_lines(by_size, by_radius, args, command_line)
+    lines += [*paths_section(by_path, args.path_size, args.repeats, info, command_line), ""]
+    lines += [*memory_lines(mem), "## Machine", "", *[f"- {k}: {v}" for k, v in info.items()]]
+    write_markdown(args.out, lines)
+    print(f"wrote {args.out}")
+    paths = {"rows": by_path, "info": info, "command": command_line}
+    saved = {
+        "by_size": by_size,
+        "by_radius": by_radius,
+        "memory": mem,
+        "info": info,
+        "paths": paths,
+    }
+    save_json(args.out.with_suffix(".json"), saved, indent=1)
     plot(by_size, by_radius, info, args.out.with_suffix(".png"), by_path)
 
 

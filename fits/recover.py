@@ -37,13 +37,11 @@ delta method. The RMSE is about the truth (bias included).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
 import time
 from functools import partial
-from pathlib import Path
 
 import jax
 
@@ -57,10 +55,21 @@ import optimistix as optx  # noqa: E402
 import scipy  # noqa: E402
 import scipy.ndimage  # noqa: E402
 import scipy.optimize  # noqa: E402
+from _common import (  # noqa: E402
+    accelerator,
+    load_json,
+    median_time,
+    result_path,
+    save_json,
+    write_markdown,
+)
 
 import jaxdof  # noqa: E402
 from jaxdof import ThinLens, fit_lens, render  # noqa: E402
-from jaxdof._fit import _auto_levels, _max_coc  # noqa: E402  (the automatic pyramid rule)
+
+# Semi-internal: the automatic pyramid rule, the largest circle of a lens, fit_lens's multi-start
+# spread (which scipy is given too), and the timer of fit_lens's compiled stages.
+from jaxdof.internal import auto_levels, max_circle, record_stages, start_lenses  # noqa: E402
 
 
 H = W = 24
@@ -217,17 +226,15 @@ def scipy_fit(fwd, target, init, tol):
 
 
 def scipy_multi(fwd, target, depth, init, tol, n_starts=4):
-    """scipy from the same starts as `fit_lens`'s default multi-start (its `_start_params`: the
-    init, then focus distances spread in diopters keeping K), one after the other, keeping the
-    lowest cost: the scipy baseline for the default `fit_lens` call. Wall and CPU summed."""
-    from jaxdof._fit import _Spec, _start_params
-
+    """scipy from the same starts as `fit_lens`'s default multi-start
+    (`jaxdof.internal.start_lenses`: the init, then focus distances spread in diopters keeping
+    K), one after the other, keeping the lowest cost: the scipy baseline for the default
+    `fit_lens` call. Wall and CPU summed."""
     base = np.array(
         [[float(init.focal_length), float(init.f_number), float(init.focus_distance), PITCH]]
     )
     d = np.asarray(depth, np.float64)
-    fcap = np.asarray(_Spec(FREE, (), 1, False).layout(base, d).fcap, np.float64)
-    starts = _start_params(base, FREE, n_starts, d, fcap)
+    starts = start_lenses(base, d, free=FREE, starts=n_starts)
     best, wall, cpu, evals = None, 0.0, 0.0, 0
     for s in starts[:, 0]:
         n_s, d_s, w, c, e, _ = scipy_fit(fwd, target, ThinLens(F, s[1], s[2], PITCH), tol)
@@ -246,54 +253,25 @@ def timed_fit(*args, **kwargs):
     return res, time.perf_counter() - t, time.process_time() - c
 
 
-def _median_time(f, reps):
-    """Median wall and process CPU time of `f()` (after one warm-up call)."""
-    jax.block_until_ready(f())
-    ws, cs = [], []
-    for _ in range(reps):
-        t, c = time.perf_counter(), time.process_time()
-        jax.block_until_ready(f())
-        ws.append(time.perf_counter() - t)
-        cs.append(time.process_time() - c)
-    return float(np.median(ws)), float(np.median(cs))
-
-
 def outside_compiled(reps=15):
-    """Wall time of a warm `fit_lens` call (24 x 24 `planes`, one start) spent outside its two
-    compiled calls (input checks, set-up, message), by timing those calls (blocking) inside it."""
-    import jaxdof._fit as fit_module
-
+    """Wall time of a warm `fit_lens` call (24 x 24 `planes`, one start) spent outside its
+    compiled stages (input checks, set-up, message): the call's time less the stages' own, which
+    `jaxdof.internal.record_stages` times (blocking) inside it (`fit_starts`, then `finish`)."""
     rng = np.random.default_rng(7)
     image, depth = scenes(rng)["planes"]
     lens = true_lens("planes")
     target = np.asarray(render(image, depth, lens, max_radius=WINDOW))
     target = target + 0.01 * rng.standard_normal(target.shape)
     init = random_init(rng, lens)
-    inside = [0.0]
-    saved = fit_module._fit_starts, fit_module._finish
-
-    def timed(f):
-        def g(*a, **k):
-            t = time.perf_counter()
-            out = jax.block_until_ready(f(*a, **k))
-            inside[0] += time.perf_counter() - t
-            return out
-
-        return g
-
-    fit_module._fit_starts, fit_module._finish = (timed(f) for f in saved)
-    try:
-        kw = dict(free=FREE, max_radius=WINDOW, starts=1, pyramid=1)
-        fit_lens(image, depth, target, init, **kw)
-        total, outside = [], []
-        for _ in range(reps):
-            inside[0] = 0.0
+    kw = dict(free=FREE, max_radius=WINDOW, starts=1, pyramid=1)
+    fit_lens(image, depth, target, init, **kw)
+    total, outside = [], []
+    for _ in range(reps):
+        with record_stages() as log:
             t = time.perf_counter()
             jax.block_until_ready(fit_lens(image, depth, target, init, **kw))
             total.append(time.perf_counter() - t)
-            outside.append(total[-1] - inside[0])
-    finally:
-        fit_module._fit_starts, fit_module._finish = saved
+        outside.append(total[-1] - sum(seconds for _, seconds in log))
     return dict(total=float(np.median(total)), outside=float(np.median(outside)))
 
 
@@ -319,85 +297,11 @@ def cost_study(quick, sizes=None):
             fwd = partial(_forward, img_j, dep_j)  # one compilation per size
             clean = np.asarray(fwd(lens.f_number, lens.focus_distance))
             if name == "slant":
-                theta = jnp.array([N_TRUE, float(lens.focus_distance)])
-                n0, d0 = lens.f_number, lens.focus_distance
-                unit[size] = dict(
-                    render=_median_time(partial(fwd, n0, d0), 20),
-                    jvp1=_median_time(partial(_jvp_one, img_j, dep_j, theta), 20),
-                    jacobian=_median_time(partial(_jacobian, img_j, dep_j, theta), 20),
-                    serial=_median_time(partial(_jacobian_serial, img_j, dep_j, theta), 20),
-                )
+                unit[size] = unit_costs(img_j, dep_j, fwd, lens)
             for _ in range(n_trials):
                 target = clean + sigma_t * rng.standard_normal(clean.shape)
                 init = random_init(rng, lens)
-                kw = dict(free=FREE, max_radius=WINDOW)
-                flat = dict(kw, pyramid=1)  # full resolution only
-                # Coarse-to-fine from one start, with the levels the automatic rule picks for
-                # several starts (from one start the default is full resolution: see the report).
-                row = np.array([F, float(init.f_number), float(init.focus_distance), PITCH])
-                coarse1 = dict(kw, pyramid=_auto_levels(image.shape[:2], _max_coc(row, depth)))
-                # Warm-up (each configuration compiles once per size).
-                fit_lens(image, depth, target, init, starts=1, **flat)
-                fit_lens(image, depth, target, init, starts=1, **coarse1)
-                fit_lens(image, depth, target, init, **kw)
-                fit_lens(image, depth, target, init, **flat)
-                scipy_fit(fwd, target, init, 1e-8)
-                rec = dict(
-                    ours1=[],
-                    cpu1=[],
-                    pyr1=[],
-                    pyr_cpu1=[],
-                    ours4=[],
-                    pyr4=[],
-                    pyr_cpu4=[],
-                    scipy=[],
-                    scipy_cpu=[],
-                    scipy4=[],
-                    scipy_cpu4=[],
-                )
-                for _ in range(reps):
-                    r1, w1, c1 = timed_fit(image, depth, target, init, starts=1, **flat)
-                    rec["ours1"].append(w1)
-                    rec["cpu1"].append(c1)
-                    p1, wp, cp = timed_fit(image, depth, target, init, starts=1, **coarse1)
-                    rec["pyr1"].append(wp)
-                    rec["pyr_cpu1"].append(cp)
-                    p4, w4, c4 = timed_fit(image, depth, target, init, **kw)
-                    rec["pyr4"].append(w4)
-                    rec["pyr_cpu4"].append(c4)
-                    rec["ours4"].append(timed_fit(image, depth, target, init, **flat)[1])
-                    n_s, d_s, ws, cs, evals, sok = scipy_fit(fwd, target, init, 1e-8)
-                    n4, d4, ws4, cs4, evals4 = scipy_multi(fwd, target, depth, init, 1e-8)
-                    rec["scipy4"].append(ws4)
-                    rec["scipy_cpu4"].append(cs4)
-                    rec["scipy"].append(ws)
-                    rec["scipy_cpu"].append(cs)
-                row = {k: float(np.median(v)) if v else float("nan") for k, v in rec.items()}
-                row.update(
-                    size=size,
-                    scene=name,
-                    steps=int(r1.num_steps),
-                    pyr_steps=int(p1.num_steps),
-                    evals4=evals4,
-                    # The default call (4 starts, pyramid) against scipy's best of the same starts.
-                    d4N=abs(n4 - float(p4.lens.f_number)) / float(p4.stderr["f_number"]),
-                    d4D=abs(d4 - float(p4.lens.focus_distance))
-                    / float(p4.stderr["focus_distance"]),
-                    levels=int(p1.levels),
-                    pyr_ok=bool(p1.success),
-                    # The pyramid's answer against the full-resolution fit's, in standard errors.
-                    pN=abs(float(p1.lens.f_number) - float(r1.lens.f_number))
-                    / float(r1.stderr["f_number"]),
-                    pD=abs(float(p1.lens.focus_distance) - float(r1.lens.focus_distance))
-                    / float(r1.stderr["focus_distance"]),
-                    evals=evals,
-                    scipy_ok=bool(sok),
-                    ours_ok=bool(r1.success),
-                    # Agreement in units of the reported standard error.
-                    dN=abs(n_s - float(r1.lens.f_number)) / float(r1.stderr["f_number"]),
-                    dD=abs(d_s - float(r1.lens.focus_distance))
-                    / float(r1.stderr["focus_distance"]),
-                )
+                row = time_trial(image, depth, target, init, fwd, reps, size, name)
                 timing.append(row)
                 print(row, flush=True)
     return dict(
@@ -407,21 +311,83 @@ def cost_study(quick, sizes=None):
         reps=reps,
         load=os.getloadavg()[0],
         date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
-        **_accelerator(),
+        **accelerator(),
     )
 
 
-def _accelerator() -> dict:
-    """`{"machine": ...}` naming the accelerator when JAX runs on one, else nothing (the CPU run)."""
-    device = jax.devices()[0]
-    if device.platform == "cpu":
-        return {}
+def unit_costs(img_j, dep_j, fwd, lens) -> dict:
+    """Median wall and CPU time of one render, one JVP, the vmapped Jacobian and two serial JVPs."""
+    theta = jnp.array([N_TRUE, float(lens.focus_distance)])
+    n0, d0 = lens.f_number, lens.focus_distance
     return dict(
-        machine=f"one {device.device_kind} ({jax.default_backend()}, jax {jax.__version__})"
+        render=median_time(partial(fwd, n0, d0), 20),
+        jvp1=median_time(partial(_jvp_one, img_j, dep_j, theta), 20),
+        jacobian=median_time(partial(_jacobian, img_j, dep_j, theta), 20),
+        serial=median_time(partial(_jacobian_serial, img_j, dep_j, theta), 20),
     )
 
 
-def main(argv=None):
+def time_trial(image, depth, target, init, fwd, reps, size, name) -> dict:
+    """One trial of section 3: every configuration warmed up, then `reps` interleaved timed calls
+    of each; medians, step counts and the answers' distances in standard errors."""
+    kw = dict(free=FREE, max_radius=WINDOW)
+    flat = dict(kw, pyramid=1)  # full resolution only
+    # Coarse-to-fine from one start, with the levels the automatic rule picks for
+    # several starts (from one start the default is full resolution: see the report).
+    row = np.array([F, float(init.f_number), float(init.focus_distance), PITCH])
+    coarse1 = dict(kw, pyramid=auto_levels(image.shape[:2], max_circle(row, depth)))
+    # Warm-up (each configuration compiles once per size).
+    fit_lens(image, depth, target, init, starts=1, **flat)
+    fit_lens(image, depth, target, init, starts=1, **coarse1)
+    fit_lens(image, depth, target, init, **kw)
+    fit_lens(image, depth, target, init, **flat)
+    scipy_fit(fwd, target, init, 1e-8)
+    keys = "ours1 cpu1 pyr1 pyr_cpu1 ours4 pyr4 pyr_cpu4 scipy scipy_cpu scipy4 scipy_cpu4"
+    rec = {k: [] for k in keys.split()}
+    for _ in range(reps):
+        r1, w1, c1 = timed_fit(image, depth, target, init, starts=1, **flat)
+        rec["ours1"].append(w1)
+        rec["cpu1"].append(c1)
+        p1, wp, cp = timed_fit(image, depth, target, init, starts=1, **coarse1)
+        rec["pyr1"].append(wp)
+        rec["pyr_cpu1"].append(cp)
+        p4, w4, c4 = timed_fit(image, depth, target, init, **kw)
+        rec["pyr4"].append(w4)
+        rec["pyr_cpu4"].append(c4)
+        rec["ours4"].append(timed_fit(image, depth, target, init, **flat)[1])
+        n_s, d_s, ws, cs, evals, sok = scipy_fit(fwd, target, init, 1e-8)
+        n4, d4, ws4, cs4, evals4 = scipy_multi(fwd, target, depth, init, 1e-8)
+        rec["scipy4"].append(ws4)
+        rec["scipy_cpu4"].append(cs4)
+        rec["scipy"].append(ws)
+        rec["scipy_cpu"].append(cs)
+    row = {k: float(np.median(v)) if v else float("nan") for k, v in rec.items()}
+    row.update(
+        size=size,
+        scene=name,
+        steps=int(r1.num_steps),
+        pyr_steps=int(p1.num_steps),
+        evals4=evals4,
+        # The default call (4 starts, pyramid) against scipy's best of the same starts.
+        d4N=abs(n4 - float(p4.lens.f_number)) / float(p4.stderr["f_number"]),
+        d4D=abs(d4 - float(p4.lens.focus_distance)) / float(p4.stderr["focus_distance"]),
+        levels=int(p1.levels),
+        pyr_ok=bool(p1.success),
+        # The pyramid's answer against the full-resolution fit's, in standard errors.
+        pN=abs(float(p1.lens.f_number) - float(r1.lens.f_number)) / float(r1.stderr["f_number"]),
+        pD=abs(float(p1.lens.focus_distance) - float(r1.lens.focus_distance))
+        / float(r1.stderr["focus_distance"]),
+        evals=evals,
+        scipy_ok=bool(sok),
+        ours_ok=bool(r1.success),
+        # Agreement in units of the reported standard error.
+        dN=abs(n_s - float(r1.lens.f_number)) / float(r1.stderr["f_number"]),
+        dD=abs(d_s - float(r1.lens.focus_distance)) / float(r1.stderr["focus_distance"]),
+    )
+    return row
+
+
+def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="6 trials per noise level, fewer timings")
     ap.add_argument(
@@ -445,89 +411,113 @@ def main(argv=None):
     ap.add_argument(
         "--cost-sizes", type=int, nargs="+", default=None, help="image sides of section 3"
     )
-    args = ap.parse_args(argv)
-    suffix = "_quick" if args.quick else ""
-    results = Path(__file__).parent / "results"
-    raw_path = results / f"recover{suffix}_raw.json"
+    return ap.parse_args(argv)
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    raw_path = result_path("recover", "_raw.json", quick=args.quick)
     if args.report_only:
-        return report(json.loads(raw_path.read_text()), args.quick)
+        return report(load_json(raw_path), args.quick)
     if args.cost_only:
-        raw = json.loads(raw_path.read_text())
+        raw = load_json(raw_path)
         raw["cost"] = cost_study(args.quick, args.cost_sizes)
         raw.pop("timing", None)  # the format of section 3 before the cost study was split out
-        (results / f"recover{suffix}{args.tag}_raw.json").write_text(json.dumps(raw))
+        save_json(result_path("recover", "_raw.json", quick=args.quick, tag=args.tag), raw)
         return report(raw, args.quick, args.tag)
     trials = args.trials or (6 if args.quick else 30)
     n_bracket = min(trials, 3 if args.quick else 10)
-    (Path(__file__).parent / "results").mkdir(exist_ok=True)
     rng = np.random.default_rng(20261122)
     sc = scenes(rng)
     t_start = time.perf_counter()
+    rows, compile_s = recovery_study(sc, rng, trials)  # 1. recovery vs CRB
+    bracket = bracket_study(sc, rng, n_bracket)  # 2. focus bracket
+    cost = cost_study(args.quick)  # 3. timing vs scipy
+    total = time.perf_counter() - t_start
+    raw = dict(
+        rows=[
+            {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+            for r in rows
+        ],
+        bracket=bracket.tolist(),
+        cost=cost,
+        compile_s=compile_s,
+        trials=trials,
+        total=total,
+    )
+    save_json(raw_path, raw)
+    report(raw, args.quick)
 
-    # ---------------------------------------------------------------- 1. recovery vs CRB
+
+def recovery_study(sc, rng, trials):
+    """Section 1: `trials` noisy fits per scene and noise level; `(rows, compile seconds)`, the
+    first fit's wall time standing for the compilation (left out of the median wall times)."""
     rows = []
     compile_s = None
     for name, (image, depth) in sc.items():
         lens = true_lens(name)
         clean = np.asarray(render(image, depth, lens, max_radius=WINDOW))
         for sigma in SIGMAS:
-            est, se, ok, steps, walls = [], [], [], [], []
-            for _ in range(trials):
-                target = clean + sigma * rng.standard_normal(clean.shape)
-                init = random_init(rng, lens)
-                t = time.perf_counter()
-                res = fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW)
-                dt = time.perf_counter() - t
-                if compile_s is None:
-                    compile_s = dt
-                else:
-                    walls.append(dt)
-                n, d_f = float(res.lens.f_number), float(res.lens.focus_distance)
-                est.append([n, d_f, blur_scale(n, d_f)])
-                k_se = float(
-                    np.sqrt(
-                        np.array([-1 / n, -1 / (d_f - F)])
-                        @ np.asarray(res.covariance)
-                        @ np.array([-1 / n, -1 / (d_f - F)])
-                    )
-                    * blur_scale(n, d_f)
-                )
-                se.append(
-                    [float(res.stderr["f_number"]), float(res.stderr["focus_distance"]), k_se]
-                )
-                ok.append(bool(res.success))
-                steps.append(int(res.num_steps))
-            est, se = np.array(est), np.array(se)
-            truth = np.array([N_TRUE, float(lens.focus_distance), float(lens.blur_scale)])
-            rmse = np.sqrt(np.mean((est - truth) ** 2, axis=0))
-            max_rel = np.max(np.abs(est / truth - 1), axis=0)
-            if sigma > 0:
-                c, ck, _ = crb(image, depth, lens, sigma)
-                bound = np.array([c[0], c[1], ck])
-            else:
-                bound = np.zeros(3)
-            rows.append(
-                dict(
-                    scene=name,
-                    sigma=sigma,
-                    success=float(np.mean(ok)),
-                    rmse=rmse,
-                    max_rel=max_rel,
-                    stderr=se.mean(axis=0),
-                    spread=est.std(axis=0, ddof=1),
-                    crb=bound,
-                    steps=float(np.median(steps)),
-                    wall=float(np.median(walls)) if walls else float("nan"),
-                )
-            )
+            fits = [one_fit(image, depth, clean, sigma, lens, rng) for _ in range(trials)]
+            walls = [f["wall"] for f in fits]
+            if compile_s is None:
+                compile_s, walls = walls[0], walls[1:]
+            rows.append(cell_row(name, sigma, image, depth, lens, fits, walls))
             r = rows[-1]
             print(
-                f"{name:7s} sigma={sigma:<6g} ok={r['success']:.2f} rmse(N,d_f,K)={rmse} "
-                f"crb={bound} stderr={r['stderr']} steps={r['steps']}",
+                f"{name:7s} sigma={sigma:<6g} ok={r['success']:.2f} rmse(N,d_f,K)={r['rmse']} "
+                f"crb={r['crb']} stderr={r['stderr']} steps={r['steps']}",
                 flush=True,
             )
+    return rows, compile_s
 
-    # ---------------------------------------------------------------- 2. focus bracket
+
+def one_fit(image, depth, clean, sigma, lens, rng) -> dict:
+    """One trial: noise on the clean render, a random wrong start, `fit_lens`; the estimates of
+    (N, d_f, K), their standard errors, success, steps and wall time."""
+    target = clean + sigma * rng.standard_normal(clean.shape)
+    init = random_init(rng, lens)
+    t = time.perf_counter()
+    res = fit_lens(image, depth, target, init, free=FREE, max_radius=WINDOW)
+    dt = time.perf_counter() - t
+    n, d_f = float(res.lens.f_number), float(res.lens.focus_distance)
+    grad_k = np.array([-1 / n, -1 / (d_f - F)])
+    k_se = float(np.sqrt(grad_k @ np.asarray(res.covariance) @ grad_k) * blur_scale(n, d_f))
+    return dict(
+        est=[n, d_f, blur_scale(n, d_f)],
+        se=[float(res.stderr["f_number"]), float(res.stderr["focus_distance"]), k_se],
+        ok=bool(res.success),
+        steps=int(res.num_steps),
+        wall=dt,
+    )
+
+
+def cell_row(name, sigma, image, depth, lens, fits, walls) -> dict:
+    """One row of section 1 from the trials of one scene and noise level."""
+    est, se = np.array([f["est"] for f in fits]), np.array([f["se"] for f in fits])
+    truth = np.array([N_TRUE, float(lens.focus_distance), float(lens.blur_scale)])
+    if sigma > 0:
+        c, ck, _ = crb(image, depth, lens, sigma)
+        bound = np.array([c[0], c[1], ck])
+    else:
+        bound = np.zeros(3)
+    return dict(
+        scene=name,
+        sigma=sigma,
+        success=float(np.mean([f["ok"] for f in fits])),
+        rmse=np.sqrt(np.mean((est - truth) ** 2, axis=0)),
+        max_rel=np.max(np.abs(est / truth - 1), axis=0),
+        stderr=se.mean(axis=0),
+        spread=est.std(axis=0, ddof=1),
+        crb=bound,
+        steps=float(np.median([f["steps"] for f in fits])),
+        wall=float(np.median(walls)) if walls else float("nan"),
+    )
+
+
+def bracket_study(sc, rng, n_bracket) -> np.ndarray:
+    """Section 2: `n_bracket` fits of a three-photo focus bracket of `slant`, f and N shared;
+    rows `(f, N, stderr f, stderr N, success)`."""
     image, depth = sc["slant"]
     focus = [1.2, 1.8, 2.6]
     cleans = [
@@ -567,24 +557,7 @@ def main(argv=None):
         )
     bracket = np.array(bracket)
     print("bracket", bracket, flush=True)
-
-    # ---------------------------------------------------------------- 3. timing vs scipy
-    cost = cost_study(args.quick)
-
-    total = time.perf_counter() - t_start
-    raw = dict(
-        rows=[
-            {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
-            for r in rows
-        ],
-        bracket=bracket.tolist(),
-        cost=cost,
-        compile_s=compile_s,
-        trials=trials,
-        total=total,
-    )
-    raw_path.write_text(json.dumps(raw))
-    report(raw, args.quick)
+    return bracket
 
 
 def report(raw, quick, tag=""):
@@ -616,9 +589,44 @@ def _cells(timing, sizes):
 
 
 def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
-    out = Path(__file__).parent / "results"
-    out.mkdir(exist_ok=True)
-    suffix = ("_quick" if quick else "") + tag
+    """The report (sections 1-3 and the conclusions, which assert the study's claims) and plot."""
+    md = conditions_lines(cost, compile_s, trials, total, quick)
+    md += recovery_lines(rows)
+    ratios, srat = efficiency(rows)
+    md.append("")
+    md.append(
+        f"Over the {len(ratios)} noisy cells: RMSE/CRB from {ratios.min():.2f} to {ratios.max():.2f} (median {np.median(ratios):.2f}); "
+        f"reported stderr / observed spread from {srat.min():.2f} to {srat.max():.2f}. Noise-free: largest relative error "
+        f"{max(r['max_rel'].max() for r in rows if r['sigma'] == 0):.2g}; success rate over all fits "
+        f"{np.mean([r['success'] for r in rows]):.3f}.\n"
+    )
+    md += bracket_lines(bracket)
+    timing = cost["timing"]
+    sizes = list(dict.fromkeys(t["size"] for t in timing))
+    md += cost_intro_lines(cost, sizes)
+    md += unit_cost_lines(cost["unit"])
+    lines, speeds = one_start_lines(timing, sizes)
+    md += lines
+    md += default_call_lines(timing, sizes, speeds)
+    md += outside_lines(timing, cost)
+    md.append(WHY_NOT_10X)
+    md.append("## Conclusions\n")
+    claims = conclusions(rows, bracket, timing, ratios, srat, speeds)
+    md += [f"- {c}" for c in claims]
+    path = write_markdown(result_path("recover", quick=quick, tag=tag), md)
+    plot(rows, result_path("recover", ".png", quick=quick, tag=tag))
+    print(f"wrote {path}")
+
+
+def efficiency(rows):
+    """RMSE / CRB (N, d_f, K) and reported stderr / observed spread (N, d_f) of the noisy cells."""
+    noisy = [r for r in rows if r["sigma"] > 0]
+    ratios = np.array([r["rmse"] / r["crb"] for r in noisy])
+    srat = np.array([r["stderr"][:2] / r["spread"][:2] for r in noisy])
+    return ratios, srat
+
+
+def conditions_lines(cost, compile_s, trials, total, quick) -> list[str]:
     md = []
     md.append("# Lens recovery: accuracy against the Cramér-Rao bound, and cost against scipy\n")
     md.append(
@@ -640,8 +648,11 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
     md.append(
         f"- {trials} trials per scene and noise level; total run time {total / 60:.1f} min; first fit (compilation) {compile_s:.1f} s\n"
     )
+    return md
 
-    md.append("## 1. One photo: `f_number` and `focus_distance` from wrong starts\n")
+
+def recovery_lines(rows) -> list[str]:
+    md = ["## 1. One photo: `f_number` and `focus_distance` from wrong starts\n"]
     md.append(
         "RMSE over the trials about the truth; `CRB` the Cramér-Rao standard deviation at the truth; `stderr` the mean reported standard error; `spread` the sample standard deviation of the estimates. K in pixels, d_f in metres.\n"
     )
@@ -661,18 +672,11 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
             + ", ".join(fmt(x, 3) for x in sr)
             + f" | {r['steps']:g} | {fmt(r['wall'], 2)} |"
         )
-    noisy = [r for r in rows if r["sigma"] > 0]
-    ratios = np.array([r["rmse"] / r["crb"] for r in noisy])
-    srat = np.array([r["stderr"][:2] / r["spread"][:2] for r in noisy])
-    md.append("")
-    md.append(
-        f"Over the {len(noisy)} noisy cells: RMSE/CRB from {ratios.min():.2f} to {ratios.max():.2f} (median {np.median(ratios):.2f}); "
-        f"reported stderr / observed spread from {srat.min():.2f} to {srat.max():.2f}. Noise-free: largest relative error "
-        f"{max(r['max_rel'].max() for r in rows if r['sigma'] == 0):.2g}; success rate over all fits "
-        f"{np.mean([r['success'] for r in rows]):.3f}.\n"
-    )
+    return md
 
-    md.append("## 2. Focus bracket: `f` and `N` apart\n")
+
+def bracket_lines(bracket) -> list[str]:
+    md = ["## 2. Focus bracket: `f` and `N` apart\n"]
     md.append(
         f"`slant` scene, three photos focused at 1.2, 1.8, 2.6 m, sigma = 0.01, {len(bracket)} trials from starts off by up to 25 % in f, 40 % in N, 10 % in d_f; "
         "`free=(focal_length, f_number, focus_distance)`, `shared=(focal_length, f_number)`.\n"
@@ -687,12 +691,13 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
     md.append(
         f"\nSuccess in {int(bracket[:, 4].sum())} of {len(bracket)} bracket fits. From one photo the same pair is refused as degenerate.\n"
     )
+    return md
 
-    md.append("## 3. Cost against scipy with finite differences\n")
-    timing = cost["timing"]
-    sizes = list(dict.fromkeys(t["size"] for t in timing))
+
+def cost_intro_lines(cost, sizes) -> list[str]:
     size_txt = ", ".join(f"{z} x {z}" for z in sizes)
-    md.append(
+    return [
+        "## 3. Cost against scipy with finite differences\n",
         f"Measured {cost['date']} "
         + (
             f"on {cost['machine']}, its own machine (sections 1 and 2 above are the CPU run's, copied). "
@@ -713,13 +718,16 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
         "point; the first table gives the cost of each piece in isolation: the render, one JVP (render and one tangent), "
         "the Jacobian as `fit_lens`'s JVP rule builds it (`jax.jacfwd`: both tangents in one vmapped pass; the primal is "
         "unused there and XLA drops it, so this is the tangent pass alone), and the same Jacobian from two separate JVPs "
-        "(each with its own weight evaluation).\n"
-    )
-    md.append(
-        "| size | render wall (ms) | CPU (ms) | 1 JVP (render + 1 tangent) wall (ms) | CPU (ms) | 2 tangents vmapped (`jacfwd`, primal dropped) wall (ms) | CPU (ms) | 2 separate JVPs wall (ms) | CPU (ms) | vmapped pair / render (CPU) |"
-    )
-    md.append("|---|---|---|---|---|---|---|---|---|---|")
-    for size, u in cost["unit"].items():
+        "(each with its own weight evaluation).\n",
+    ]
+
+
+def unit_cost_lines(unit) -> list[str]:
+    md = [
+        "| size | render wall (ms) | CPU (ms) | 1 JVP (render + 1 tangent) wall (ms) | CPU (ms) | 2 tangents vmapped (`jacfwd`, primal dropped) wall (ms) | CPU (ms) | 2 separate JVPs wall (ms) | CPU (ms) | vmapped pair / render (CPU) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for size, u in unit.items():
         (rw, rc), (jw, jc) = u["render"], u["jacobian"]
         vw, vc = u.get("jvp1", (float("nan"),) * 2)
         sw, sc2 = u.get("serial", (float("nan"),) * 2)
@@ -727,10 +735,15 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
             f"| {size} x {size} | {rw * 1e3:.2f} | {rc * 1e3:.2f} | {vw * 1e3:.2f} | {vc * 1e3:.2f} | {jw * 1e3:.2f} | {jc * 1e3:.2f} | {sw * 1e3:.2f} | {sc2 * 1e3:.2f} | {jc / rc:.1f} |"
         )
     md.append("")
-    md.append(
-        "| size | scene | fit_lens 1 start, full res (s) | CPU (s) | LM steps | pyramid 1 start (s) | CPU (s) | levels | full-res LM steps | scipy (s) | scipy CPU (s) | scipy renders | scipy / full res wall | scipy / pyramid wall | CPU | |pyramid - full res| / stderr (N, d_f) | |scipy - full res| / stderr (N, d_f) |"
-    )
-    md.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    return md
+
+
+def one_start_lines(timing, sizes):
+    """The one-start table and bullets; `(lines, speeds)`, `speeds[size]` the medians of ratios."""
+    md = [
+        "| size | scene | fit_lens 1 start, full res (s) | CPU (s) | LM steps | pyramid 1 start (s) | CPU (s) | levels | full-res LM steps | scipy (s) | scipy CPU (s) | scipy renders | scipy / full res wall | scipy / pyramid wall | CPU | |pyramid - full res| / stderr (N, d_f) | |scipy - full res| / stderr (N, d_f) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     speeds = {}
     for size, name, m in _cells(timing, sizes):
         md.append(
@@ -767,16 +780,19 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
             f"Jacobian (renders / 3) median {ratio:.2f}."
         )
     md.append("")
-    md.append(
+    return md, speeds
+
+
+def default_call_lines(timing, sizes, speeds) -> list[str]:
+    """The default 4-start call against scipy from the same starts (adds `multi*` to `speeds`)."""
+    md = [
         "The default call: `fit_lens` with its 4 starts (the init, then focus distances spread in diopters), at full "
         "resolution only and coarse-to-fine, against scipy run from the same 4 starts one after the other, keeping the "
-        "lowest cost (its wall and CPU times summed)."
-    )
-    md.append("")
-    md.append(
-        "| size | scene | fit_lens 4 starts, full res (s) | pyramid 4 starts (s) | CPU (s) | scipy 4 starts (s) | CPU (s) | scipy renders | scipy / pyramid wall | CPU | full res / pyramid wall | |scipy - ours| / stderr (N, d_f) |"
-    )
-    md.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
+        "lowest cost (its wall and CPU times summed).",
+        "",
+        "| size | scene | fit_lens 4 starts, full res (s) | pyramid 4 starts (s) | CPU (s) | scipy 4 starts (s) | CPU (s) | scipy renders | scipy / pyramid wall | CPU | full res / pyramid wall | |scipy - ours| / stderr (N, d_f) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for size, name, m in _cells(timing, sizes):
         md.append(
             f"| {size} | {name} | {m('ours4'):.4f} | {m('pyr4'):.4f} | {m('pyr_cpu4'):.4f} | {m('scipy4'):.4f} | {m('scipy_cpu4'):.4f} | {m('evals4'):g} | {m('scipy4') / m('pyr4'):.2f} | {m('scipy_cpu4') / m('pyr_cpu4'):.2f} | {m('ours4') / m('pyr4'):.2f} | {m('d4N'):.2g}, {m('d4D'):.2g} |"
@@ -799,11 +815,15 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
                 else "."
             )
         )
+    return md
+
+
+def outside_lines(timing, cost) -> list[str]:
     worst_p = max(max(t["pN"], t["pD"]) for t in timing)
-    md.append(
+    md = [
         f"- Coarse-to-fine lands on the full-resolution fit: at most {worst_p:.2g} standard errors apart over all fits "
         "(both stop at the solver tolerance, 1e-8 in the log coordinates)."
-    )
+    ]
     if "outside" in cost:
         o = cost["outside"]
         md.append(
@@ -811,14 +831,7 @@ def write(rows, bracket, cost, compile_s, trials, total, quick, tag=""):
             f"spends {o['outside'] * 1e3:.1f} ms of {o['total'] * 1e3:.1f} ms (median of 15)."
         )
     md.append("")
-    md.append(WHY_NOT_10X)
-    md.append("## Conclusions\n")
-    claims = conclusions(rows, bracket, timing, ratios, srat, speeds)
-    md += [f"- {c}" for c in claims]
-    path = out / f"recover{suffix}.md"
-    path.write_text("\n".join(md) + "\n")
-    plot(rows, out / f"recover{suffix}.png")
-    print(f"wrote {path}")
+    return md
 
 
 def conclusions(rows, bracket, timing, ratios, srat, speeds):

@@ -19,11 +19,9 @@ Run: `python fits/stability.py` (about a minute on a laptop CPU). Writes
 
 from __future__ import annotations
 
+import argparse
 import math
-import platform
-import sys
 import time
-from pathlib import Path
 
 import jax
 
@@ -37,13 +35,15 @@ import numpy as np  # noqa: E402
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from _common import result_path, versions_line, write_markdown  # noqa: E402
 
 import jaxdof  # noqa: E402
 from jaxdof import ThinLens, circle_pixel_overlap, coc_filter, render  # noqa: E402
-from jaxdof._filters.soft import soft_filter  # noqa: E402
+
+# Semi-internal: the filter without the run-time input checks.
+from jaxdof.internal import soft_filter  # noqa: E402
 
 
-OUT = Path(__file__).resolve().parent / "results"
 SEED = 0
 
 
@@ -314,26 +314,10 @@ def _fmt(x, spec=".1e"):
     return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else format(x, spec)
 
 
-def main():
-    t_start = time.perf_counter()
-    OUT.mkdir(parents=True, exist_ok=True)
-    overlap = overlap_study()
-    print(f"overlap study done ({time.perf_counter() - t_start:.0f} s)", flush=True)
-    rend = render_study()
-    print(f"render study done ({time.perf_counter() - t_start:.0f} s)", flush=True)
-    cond_a, cond_b = conditioning_study()
-    print(f"conditioning study done ({time.perf_counter() - t_start:.0f} s)", flush=True)
-    cost = {size: check_cost(size, size) for size in (64, 256)}
-    elapsed = time.perf_counter() - t_start
-
+def overlap_lines(overlap) -> list[str]:
+    """Section 1: the float32 error of `circle_pixel_overlap` per radius, against the bound."""
     worst = max(row["err"] / row["bound"] for row in overlap)
     lines = [
-        "# Numerical stability at the extremes",
-        "",
-        "Written by `fits/stability.py` (seed 0). "
-        f"jax {jax.__version__}, jaxdof {jaxdof.__version__}, Python {sys.version.split()[0]}, "
-        f"{platform.machine()} CPU ({jax.devices()[0].platform}); run time {elapsed:.0f} s.",
-        "",
         "## 1. `circle_pixel_overlap` in float32 (r log-spaced 1e-8 .. 1000 px)",
         "",
         "Max of |float32 - float64| (float64 at the same float32 inputs), in pixel areas, over "
@@ -354,10 +338,16 @@ def main():
             f"| {row['r']:.3g} | {_fmt(row['err'])} | {row['err'] / row['bound']:.3f} | "
             f"{_fmt(row['rel_area'])} | {tb} |"
         )
-    lines += [
+    return lines + [
         "",
         f"Worst error / bound over all {len(overlap)} radii: **{worst:.3f}** (must be <= 1).",
         "",
+    ]
+
+
+def render_lines(rend) -> list[str]:
+    """Section 2: float32 against float64 renders, losses and gradients at the extremes."""
+    lines = [
         "## 2. `render` and a fit's loss: float32 against float64",
         "",
         "16x16x3 random texture, depth planes at 1.5 m and 6 m (then transformed per row), "
@@ -375,8 +365,12 @@ def main():
             f"{_fmt(row['grad'])} | {_fmt(row['jvp'])} | {_fmt(row['g_img'])} | "
             f"{'yes' if row['finite'] else '**no**'} |"
         )
-    lines += [
-        "",
+    return lines + [""]
+
+
+def conditioning_lines(cond_a, cond_b) -> list[str]:
+    """Section 3: the condition number of the fit's normal matrix, (a) and (b)."""
+    lines = [
         "## 3. Conditioning of the fit's normal matrix",
         "",
         "`cond(D J^T J D)`, `J` = Jacobian of the rendered 20x20 image with respect to "
@@ -407,8 +401,12 @@ def main():
     ]
     for row in cond_b:
         lines.append(f"| {row['width']:.0e} | {_fmt(row['cond'], '.3g')} |")
-    lines += [
-        "",
+    return lines + [""]
+
+
+def cost_lines(cost) -> list[str]:
+    """Section 4: what the run-time input check costs under jit."""
+    lines = [
         "## 4. Cost of the run-time input checks under jit",
         "",
         "float32, radii 0..4 px, `max_radius=4`, median of 7 x 5 calls; `coc_filter` runs the "
@@ -421,10 +419,36 @@ def main():
     for size, c in cost.items():
         a, b = c["coc_filter (checked)"], c["soft_filter (no checks)"]
         lines.append(f"| {size}x{size}x3 | {a * 1e3:.2f} | {b * 1e3:.2f} | {a / b:.2f} |")
-    lines.append("")
-    (OUT / "stability.md").write_text("\n".join(lines))
+    return lines
+
+
+def main(argv=None):
+    argparse.ArgumentParser(description=__doc__.splitlines()[0]).parse_args(argv)  # --help only
+    t_start = time.perf_counter()
+    overlap = overlap_study()
+    print(f"overlap study done ({time.perf_counter() - t_start:.0f} s)", flush=True)
+    rend = render_study()
+    print(f"render study done ({time.perf_counter() - t_start:.0f} s)", flush=True)
+    cond_a, cond_b = conditioning_study()
+    print(f"conditioning study done ({time.perf_counter() - t_start:.0f} s)", flush=True)
+    cost = {size: check_cost(size, size) for size in (64, 256)}
+    elapsed = time.perf_counter() - t_start
+
+    worst = max(row["err"] / row["bound"] for row in overlap)
+    lines = [
+        "# Numerical stability at the extremes",
+        "",
+        f"Written by `fits/stability.py` (seed 0). {versions_line()} "
+        f"({jax.devices()[0].platform}); run time {elapsed:.0f} s.",
+        "",
+        *overlap_lines(overlap),
+        *render_lines(rend),
+        *conditioning_lines(cond_a, cond_b),
+        *cost_lines(cost),
+    ]
+    write_markdown(result_path("stability"), lines)
     _plot(overlap, cond_a, cond_b)
-    print("\n".join(lines))
+    print("\n".join(lines + [""]))
     assert worst <= 1.0, f"float32 overlap error exceeds the 2e-6 max(1, r) bound: {worst}"
     assert all(row["finite"] for row in rend), "NaN or inf in render/loss values or gradients"
 
@@ -459,7 +483,7 @@ def _plot(overlap, cond_a, cond_b):
     ax.invert_xaxis()
     ax.legend()
     fig.tight_layout()
-    fig.savefig(OUT / "stability.png", dpi=90)
+    fig.savefig(result_path("stability", ".png"), dpi=90)
 
 
 if __name__ == "__main__":

@@ -38,18 +38,19 @@ frame and on larger frames where per-call overhead matters less, beside an empty
 `image + 1`, the floor). Lens fit: the f-number (log coordinate; it sets the blur scale, the focus distance is
 known) by optimistix Levenberg-Marquardt through `jaxdof.render(..., method=...)`, from a start 15 %
 off, on targets rendered by `soft` with the true lens, at R = 8; the error is its relative error.
-Methods with no gradient in the radius (`DIFFERENTIABLE_IN_RADIUS`) are not fitted. `jaxdof.fit_lens`
-has no `method` argument yet, so the fit here is a minimal optimistix LM. (Fitting the focus distance
-too from one photo converged slowly from 15 % off in a first trial, 40 steps, so it was left out.)
+Methods with no gradient in the radius (`method.differentiable_in_radius` false) are not fitted,
+except `Layered`, whose gradient flows through its level means. The fit is a minimal optimistix LM
+over the f-number alone, written before `jaxdof.fit_lens` took a forward model (`model=`), and
+kept so that the rows stay comparable. (Fitting the focus distance too from one photo converged
+slowly from 15 % off in a first trial, 40 steps, so it was left out.) Each row's method is a
+method object (`knob_table`: `jaxdof.Supersample(samples=n)`, `jaxdof.Layered(layers=L)`, ...).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
-import platform
 import sys
 import time
 import timeit
@@ -63,39 +64,42 @@ jax.config.update("jax_enable_x64", False)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
+from _common import (  # noqa: E402
+    SAMPLE_S,
+    batched_medians_in_turns,
+    calls_per_sample,
+    command,
+    load_average,
+    load_json,
+    result_path,
+    save_json,
+    versions_line,
+    write_markdown,
+)
 
 import jaxdof  # noqa: E402
-from jaxdof import ThinLens, coc_filter, coc_radius, render  # noqa: E402
-from jaxdof._filters.auto import choose_method  # noqa: E402
-from jaxdof._filters.coc_filter import DIFFERENTIABLE_IN_RADIUS  # noqa: E402
-
-
-HERE = Path(__file__).resolve().parent
-RESULTS = HERE / "results"
-
-
-def result_path(quick: bool, tag: str, ending: str) -> Path:
-    """`fits/results/tradeoff[_quick][tag]<ending>`, e.g. ending `.md`, `.png` or `_raw.json`."""
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    return RESULTS / f"tradeoff{'_quick' if quick else ''}{tag}{ending}"
+from jaxdof import ThinLens, choose_method, coc_filter, coc_radius, render  # noqa: E402
 
 
 KEY = jax.random.key(0)
 F, D_F, PITCH = 0.05, 2.5, 1e-5  # 50 mm lens focused at 2.5 m, 10 um pixels
 
 
-def knob_table(quick: bool, radius: float):
-    """(method, label, knobs) rows; one curve per method over its knob."""
-    rows = [("soft", "", {}), ("hard", "", {}), ("auto", "", {})]
+def knob_table(quick: bool, radius: float) -> list[tuple[str, str, jaxdof.AbstractMethod]]:
+    """`(name, knob label, method object)` rows; one curve per method over its knob."""
+    rows = [("soft", "", jaxdof.Soft()), ("hard", "", jaxdof.Hard()), ("auto", "", jaxdof.Auto())]
     ss = (2, 4, 8) if quick else ((2, 4, 8, 16) if radius <= 8 else (2, 4, 8))
-    rows += [("supersample", f"n={n}", {"samples": n}) for n in ss]
+    rows += [("supersample", f"n={n}", jaxdof.Supersample(samples=n)) for n in ss]
     rows += [
-        ("jitter", f"n={n}", {"samples": n, "key": KEY})
+        ("jitter", f"n={n}", jaxdof.Jitter(samples=n, key=KEY))
         for n in ((4, 16) if quick else (4, 16, 64))
     ]
     ap = (16, 64, 256) if quick else (16, 64, 256, 1024)
-    rows += [("aperture", f"N={n}", {"samples": n}) for n in ap]
-    rows += [("layered", f"L={n}", {"layers": n}) for n in ((2, 4, 8) if quick else (2, 4, 8, 16))]
+    rows += [("aperture", f"N={n}", jaxdof.Aperture(samples=n)) for n in ap]
+    rows += [
+        ("layered", f"L={n}", jaxdof.Layered(layers=n))
+        for n in ((2, 4, 8) if quick else (2, 4, 8, 16))
+    ]
     return rows
 
 
@@ -134,44 +138,16 @@ def lens_for(depth: np.ndarray, radius: float) -> ThinLens:
     return ThinLens(F, r1 / radius, D_F, PITCH)
 
 
-#: Each timing sample is a batch of back-to-back calls lasting about this long (per-call time =
-#: batch time / calls): sub-millisecond calls are otherwise dominated by timer and wake-up noise.
-SAMPLE_S = 5e-3
-
-
-def compile_and_batch(fn, *args) -> tuple[float, int]:
-    """(compile+first call in seconds, calls per timing sample)."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    warm = timeit.timeit(lambda: jax.block_until_ready(fn(*args)), number=1)
-    return first, max(1, min(64, round(SAMPLE_S / max(warm, 1e-9))))
-
-
-def per_call(fn, args, calls: int) -> float:
-    """One timing sample: seconds per call over a batch of `calls` back-to-back calls."""
-    return timeit.timeit(lambda: jax.block_until_ready(fn(*args)), number=calls) / calls
-
-
-def interleaved_medians(timers, repeat: int) -> list[float]:
-    """Median per-call time of each `(fn, args, calls)`, sampled in `repeat` rounds that visit
-    every timer once (so a change of the machine's load hits all of them alike)."""
-    samples = [[] for _ in timers]
-    for _ in range(repeat):
-        for i, (fn, args, calls) in enumerate(timers):
-            samples[i].append(per_call(fn, args, calls))
-    return [float(np.median(v)) for v in samples]
-
-
-def fit_error(method, knobs, image, depth, lens, target, radius, steps=40):
-    """Relative error of the f-number (the blur scale) fitted through `method`, focus known."""
+def fit_error(method, image, depth, lens, target, radius, steps=40):
+    """Relative error of the f-number (the blur scale) fitted through `method` (a method object),
+    focus known."""
     truth = float(lens.f_number)
     y0 = jnp.log(jnp.asarray([truth * 1.15], jnp.float32))
 
     def residual(y, args):
         img, dep, tgt = args
         trial = ThinLens(F, jnp.exp(y[0]), D_F, PITCH)
-        out = render(img, dep, trial, method=method, max_radius=1.5 * radius, **knobs)
+        out = render(img, dep, trial, method=method, max_radius=1.5 * radius)
         return (out - tgt).reshape(-1)
 
     solver = optx.LevenbergMarquardt(rtol=1e-5, atol=1e-5)  # float32: steps at its rounding floor
@@ -187,92 +163,13 @@ def run(
     size = size or (32 if quick else 48)
     radii = (2.0, 8.0) if quick else (2.0, 8.0, 24.0)
     repeat = 3 if quick else 5
-    mp = size * size / 1e6
     scenes = ("smooth", "steps", "planes")
     image = jnp.asarray(texture(size), jnp.float32)
     rows = []
     auto_rows = []
     t_start = time.perf_counter()
     for R in radii:
-        timers = []  # (fwd, args, calls), (grad, gargs, calls) of every row of this R, in order
-        setup = {}
-        for scene in scenes:
-            depth = depth_map(scene, size)
-            lens = lens_for(depth, R)
-            radius = np.asarray(coc_radius(jnp.asarray(depth, jnp.float32), lens), np.float32)
-            ref = np.asarray(coc_filter(image, jnp.asarray(radius), max_radius=R))
-            setup[scene] = (depth, lens, radius, ref)
-        for method, label, knobs in knob_table(quick, R):
-            # one compiled function per (R, method, knob), shared by the scenes (same shapes)
-            def fwd_fn(img, r, m=method, k=knobs, R=R):
-                return coc_filter(img, r, method=m, max_radius=R, **k)
-
-            def loss(img, r, tgt, m=method, k=knobs, R=R):
-                return 0.5 * jnp.sum((coc_filter(img, r, method=m, max_radius=R, **k) - tgt) ** 2)
-
-            shared_fwd = jax.jit(fwd_fn)
-            shared_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
-            for scene in scenes:
-                depth, lens, radius, ref = setup[scene]
-                rad, target = jnp.asarray(radius), jnp.asarray(ref)
-                if (
-                    method == "auto"
-                ):  # the radius map must be concrete: closed over, compiled per scene
-                    fwd = jax.jit(lambda img, r=radius: fwd_fn(img, r))
-                    grad = jax.jit(
-                        jax.value_and_grad(lambda img, r=radius, t=target: loss(img, r, t))
-                    )
-                    args, gargs = (image,), (image,)
-                else:
-                    fwd, grad, args, gargs = (
-                        shared_fwd,
-                        shared_grad,
-                        (image, rad),
-                        (image, rad, target),
-                    )
-                out = np.asarray(fwd(*args))
-                err = np.abs(out.astype(np.float64) - ref)
-                rmse = float(np.sqrt(np.mean(err**2)))
-                compile_f, calls_f = compile_and_batch(fwd, *args)
-                compile_g, calls_g = compile_and_batch(grad, *gargs)
-                timers += [(fwd, args, calls_f), (grad, gargs, calls_g)]
-                fit = None
-                fitted = DIFFERENTIABLE_IN_RADIUS[method] or method == "layered"
-                if (
-                    R == 8.0 and fitted and method != "auto"
-                ):  # auto fits through soft (traced radius)
-                    fit = fit_error(
-                        method, knobs, image, jnp.asarray(depth, jnp.float32), lens, target, R
-                    )
-                row = dict(
-                    scene=scene,
-                    R=R,
-                    method=method,
-                    knob=label,
-                    max_err=float(err.max()),
-                    rmse=rmse,
-                    psnr=float(20 * np.log10(1 / rmse)) if rmse > 0 else math.inf,
-                    fwd_ms_per_mp=math.nan,  # timed below, interleaved with the other rows
-                    grad_ms_per_mp=math.nan,
-                    compile_s=compile_f + compile_g,
-                    fit_err=fit,
-                    choice=choose_method(radius, max_radius=R) if method == "auto" else "",
-                )
-                rows.append(row)
-                print(
-                    f"{scene:7s} R={R:4.0f} {method:11s} {label:7s} max={row['max_err']:.2e} "
-                    f"rmse={rmse:.2e} fit={'' if fit is None else f'{fit:.1e}'} {row['choice']} "
-                    f"[{time.perf_counter() - t_start:.0f}s]",
-                    flush=True,
-                )
-        timed = interleaved_medians(timers, repeat)
-        for row, t_f, t_g in zip(rows[-len(timers) // 2 :], timed[::2], timed[1::2]):
-            row["fwd_ms_per_mp"], row["grad_ms_per_mp"] = 1e3 * t_f / mp, 1e3 * t_g / mp
-            print(
-                f"{row['scene']:7s} R={R:4.0f} {row['method']:11s} {row['knob']:7s} "
-                f"fwd={row['fwd_ms_per_mp']:9.1f} ms/MP grad={row['grad_ms_per_mp']:9.1f}",
-                flush=True,
-            )
+        rows += measure_radius(R, image, scenes, quick, repeat, t_start)
         for sz in dict.fromkeys((size, *auto_sizes)):
             auto_rows += auto_vs_soft(R, scenes, sz, repeat)
     meta = dict(
@@ -283,30 +180,117 @@ def run(
         elapsed=time.perf_counter() - t_start,
     )
     raw = dict(meta=meta, measured=measured_here(), rows=rows, auto_rows=auto_rows)
-    result_path(quick, tag, "_raw.json").write_text(json.dumps(raw, indent=1) + "\n")
+    raw_path = result_path("tradeoff", "_raw.json", quick=quick, tag=tag)
+    save_json(raw_path, raw, indent=1, final_newline=True)
     write(rows, auto_rows, raw["measured"], **meta, tag=tag)
+
+
+def measure_radius(R: float, image, scenes, quick: bool, repeat: int, t_start: float) -> list:
+    """Every row (scene, method, knob) at max radius `R`: accuracy and fit first, then the
+    forward and fwd+grad times of all of them sampled round by round."""
+    size = image.shape[0]
+    mp = size * size / 1e6
+    setup = {}
+    for scene in scenes:
+        depth = depth_map(scene, size)
+        lens = lens_for(depth, R)
+        radius = np.asarray(coc_radius(jnp.asarray(depth, jnp.float32), lens), np.float32)
+        ref = np.asarray(coc_filter(image, jnp.asarray(radius), max_radius=R))
+        setup[scene] = (depth, lens, radius, ref)
+    rows = []
+    timers = []  # (fwd, args, calls), (grad, gargs, calls) of every row of this R, in order
+    for name, label, method in knob_table(quick, R):
+        # one compiled function per (R, method, knob), shared by the scenes (same shapes)
+        def fwd_fn(img, r, m=method, R=R):
+            return coc_filter(img, r, method=m, max_radius=R)
+
+        def loss(img, r, tgt, m=method, R=R):
+            return 0.5 * jnp.sum((coc_filter(img, r, method=m, max_radius=R) - tgt) ** 2)
+
+        shared = (jax.jit(fwd_fn), jax.jit(jax.value_and_grad(loss, argnums=(0, 1))))
+        for scene in scenes:
+            row, row_timers = measure_row(
+                scene, R, name, label, method, image, setup[scene], fwd_fn, loss, shared
+            )
+            rows.append(row)
+            timers += row_timers
+            fit = row["fit_err"]
+            print(
+                f"{scene:7s} R={R:4.0f} {name:11s} {label:7s} max={row['max_err']:.2e} "
+                f"rmse={row['rmse']:.2e} fit={'' if fit is None else f'{fit:.1e}'} "
+                f"{row['choice']} [{time.perf_counter() - t_start:.0f}s]",
+                flush=True,
+            )
+    timed = batched_medians_in_turns(timers, repeat)
+    for row, t_f, t_g in zip(rows, timed[::2], timed[1::2]):
+        row["fwd_ms_per_mp"], row["grad_ms_per_mp"] = 1e3 * t_f / mp, 1e3 * t_g / mp
+        print(
+            f"{row['scene']:7s} R={R:4.0f} {row['method']:11s} {row['knob']:7s} "
+            f"fwd={row['fwd_ms_per_mp']:9.1f} ms/MP grad={row['grad_ms_per_mp']:9.1f}",
+            flush=True,
+        )
+    return rows
+
+
+def measure_row(scene, R, name, label, method, image, setup, fwd_fn, loss, shared):
+    """One row's errors against soft, compile time and fit error (times left NaN), and its two
+    timers `(fn, args, calls)`: forward and fwd+grad. `name` is the method's row name, `method`
+    the object."""
+    depth, lens, radius, ref = setup
+    rad, target = jnp.asarray(radius), jnp.asarray(ref)
+    if name == "auto":  # the radius map must be concrete: closed over, compiled per scene
+        fwd = jax.jit(lambda img, r=radius: fwd_fn(img, r))
+        grad = jax.jit(jax.value_and_grad(lambda img, r=radius, t=target: loss(img, r, t)))
+        args, gargs = (image,), (image,)
+    else:
+        (fwd, grad), args, gargs = shared, (image, rad), (image, rad, target)
+    out = np.asarray(fwd(*args))
+    err = np.abs(out.astype(np.float64) - ref)
+    rmse = float(np.sqrt(np.mean(err**2)))
+    compile_f, calls_f = calls_per_sample(fwd, *args)
+    compile_g, calls_g = calls_per_sample(grad, *gargs)
+    fit = None
+    fitted = method.differentiable_in_radius or name == "layered"
+    if R == 8.0 and fitted and name != "auto":  # auto fits through soft (traced radius)
+        fit = fit_error(method, image, jnp.asarray(depth, jnp.float32), lens, target, R)
+    row = dict(
+        scene=scene,
+        R=R,
+        method=name,
+        knob=label,
+        max_err=float(err.max()),
+        rmse=rmse,
+        psnr=float(20 * np.log10(1 / rmse)) if rmse > 0 else math.inf,
+        fwd_ms_per_mp=math.nan,  # timed by the caller, interleaved with the other rows
+        grad_ms_per_mp=math.nan,
+        compile_s=compile_f + compile_g,
+        fit_err=fit,
+        choice=choose_method(radius, max_radius=R) if name == "auto" else "",
+    )
+    return row, [(fwd, args, calls_f), (grad, gargs, calls_g)]
 
 
 def auto_vs_soft(R: float, scenes, size: int, repeat: int) -> list[dict]:
     """`auto` and `soft`, the radius map closed over (concrete), timed interleaved in one run."""
     image = jnp.asarray(texture(size), jnp.float32)
+    soft, auto = jaxdof.Soft(), jaxdof.Auto()
     out = []
     for scene in scenes:
         depth = depth_map(scene, size)
         radius = np.asarray(
             coc_radius(jnp.asarray(depth, jnp.float32), lens_for(depth, R)), np.float32
         )
-        soft_c = jax.jit(lambda img, r=radius: coc_filter(img, r, method="soft", max_radius=R))
-        auto_c = jax.jit(lambda img, r=radius: coc_filter(img, r, method="auto", max_radius=R))
+        soft_c = jax.jit(lambda img, r=radius: coc_filter(img, r, method=soft, max_radius=R))
+        auto_c = jax.jit(lambda img, r=radius: coc_filter(img, r, method=auto, max_radius=R))
         # soft as it runs inside render/fit_lens: the radius map an argument, not a constant that
         # XLA may fold (with it closed over, the weight maps can be computed at compile time).
-        soft_t = jax.jit(lambda img, r: coc_filter(img, r, method="soft", max_radius=R))
+        soft_t = jax.jit(lambda img, r: coc_filter(img, r, method=soft, max_radius=R))
         # the per-call floor: one elementwise pass over the same frame, dispatch included
         empty = jax.jit(lambda img: img + 1)
         radius_t = jnp.asarray(radius)
         ref = np.asarray(soft_c(image), np.float64)
         calls = [
-            (f, a, compile_and_batch(f, *a)[1])
+            (f, a, calls_per_sample(f, *a)[1])
             for f, a in (
                 (soft_c, (image,)),
                 (soft_t, (image, radius_t)),
@@ -314,7 +298,7 @@ def auto_vs_soft(R: float, scenes, size: int, repeat: int) -> list[dict]:
                 (empty, (image,)),
             )
         ]
-        ts, tt, ta, te = interleaved_medians(calls, 3 * repeat)
+        ts, tt, ta, te = batched_medians_in_turns(calls, 3 * repeat)
         t_inspect = timeit.repeat(
             lambda r=radius: choose_method(r, max_radius=R), number=1, repeat=5
         )
@@ -355,11 +339,10 @@ def measured_here() -> list[str]:
     """The report's lines on the run itself: its command, the software and machine, the load."""
     device = jax.devices()[0]
     return [
-        f"Generated by `python fits/tradeoff.py{' '.join([''] + sys.argv[1:])}` (see its docstring for the method).",
-        f"- jax {jax.__version__}, jaxdof {jaxdof.__version__}, Python {platform.python_version()}, "
-        f"{platform.machine()} CPU, {os.cpu_count()} cores visible, backend {jax.default_backend()} "
+        f"Generated by `{command('tradeoff.py')}` (see its docstring for the method).",
+        f"- {versions_line()}, {os.cpu_count()} cores visible, backend {jax.default_backend()} "
         f"({device.device_kind})",
-        f"- load average at the end: {', '.join(f'{x:.1f}' for x in os.getloadavg())} "
+        f"- load average at the end: {load_average()} "
         "(the machine was shared with other jobs: timings are noisy, ratios within one panel are "
         "what to read)",
     ]
@@ -367,7 +350,7 @@ def measured_here() -> list[str]:
 
 def write(rows, auto_rows, measured, quick, size, radii, repeat, elapsed, tag=""):
     """The report and plot from measured rows; `measured`: the run's `measured_here` lines."""
-    png = result_path(quick, tag, ".png")
+    png = result_path("tradeoff", ".png", quick=quick, tag=tag)
     front = pareto_flags(rows)
     lines = [
         "# Speed against accuracy of the `coc_filter` methods",
@@ -447,7 +430,7 @@ def write(rows, auto_rows, measured, quick, size, radii, repeat, elapsed, tag=""
         "  they can cost less than `soft` but carry the coverage error in the tables; at n = 8 see the",
         "  goal line above for how supersampling compares with `soft`, which has no error.",
     ]
-    result_path(quick, tag, ".md").write_text("\n".join(lines) + "\n")
+    write_markdown(result_path("tradeoff", quick=quick, tag=tag), lines)
     plot(rows, png, radii)
     print("\n".join(lines))
 
@@ -586,7 +569,7 @@ def plot(rows, path, radii):
     fig.savefig(path, dpi=110)
 
 
-if __name__ == "__main__":
+def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
         "--quick", action="store_true", help="32 px images, radius 2 and 8, fewer knobs"
@@ -605,10 +588,14 @@ if __name__ == "__main__":
         metavar="RAW_JSON",
         help="rewrite the report and plot from a run's raw file (no timing), e.g. after editing them",
     )
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.rewrite:
-        raw = json.loads(Path(args.rewrite).read_text())
+        raw = load_json(Path(args.rewrite))
         write(raw["rows"], raw["auto_rows"], raw["measured"], **raw["meta"], tag=args.tag)
     else:
         run(args.quick, args.size, args.tag, tuple(args.auto_size))
+
+
+if __name__ == "__main__":
+    main()
     sys.exit(0)

@@ -18,13 +18,13 @@ import jaxdof
 from jaxdof import (
     depth_edges,
     edge_weight,
-    footprint_radius,
+    footprint_prefilter,
     lens_from_raytracer,
     ray_distance_to_z,
 )
-from jaxdof._corrections import (
+from jaxdof.internal import (
     edge_distance,
-    footprint_prefilter,
+    footprint_radius,
     kernel_variance,
     pixel_prefilter,
 )

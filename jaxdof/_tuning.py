@@ -1,0 +1,183 @@
+"""Every measured crossover and cost constant of jaxdof, with its provenance (STYLE.md, practice 18).
+
+**What belongs here.** A constant that changes only how fast (or in how much memory) a result is
+computed, never the result beyond float rounding, and whose value was read off a measurement: the
+radius from which row spans beat the dense gather, the cost of one FFT level in gather taps, the
+size up to which a loop is written out. Definitions stay with their code: mathematical constants
+(`_overlap._SERIES_BELOW`, `soft._T2_MAX`), constants a proof fixes (`spans.TAPS`), constants that
+change the numbers (`jitter.PATTERNS`, `_corrections._TABLE_MAX`, `_corrections._VARIANCE_COLUMNS`,
+`occlusion.DEFAULT_JUMP`), and the fitting policy of `_fit.py` (`_WINDOWS`, `_PYRAMID_*`,
+`_COARSE_TOL`, `_CLIP`), which changes which lens a fit returns or when it stops.
+
+**Re-measuring.** `python fits/tune.py` asks each constant's question again on the current machine
+and prints a table (name, old value, measured value) and the lines to paste here;
+`python fits/tune.py --only NAME` re-measures one. After pasting, update the constant's comment
+with the new figures and the run's conditions (the script prints them).
+
+**Where they were measured.** Unless a comment says otherwise: a 2-core AMD EPYC CPU shared with
+other jobs (load average 1-20), jax/jaxlib 0.10.2, float32, jitted, wall time; "one run" means
+one interleaved run whose ratios, not absolute times, are what to read.
+
+Measured choices that are code rather than a number (no constant to re-measure; their figures stay
+beside the code): the residual's Jacobian-materialising JVP in `_fit.py` (1.5-1.9x less time per
+solve, 24 x 24 scene of `fits/recover.py`); no coarse pyramid level from one start (`_fit.py`,
+0.5-0.7x the speed otherwise); one scattered index per source in `aperture.py` (0.4-0.45x the
+forward time); channels first in `tabulated._classes_written_out` and in `layered`'s FFTs; a
+weight ending in a division in `soft._weight_and_slope` (2.8-3.4x slower otherwise); the
+supersample count's sub-rows summed one at a time (3.5-5x slower as an array); layered's level
+search by min-reductions instead of a sort (14 ms of 21 ms at 256^2 before).
+"""
+
+from __future__ import annotations
+
+import math
+
+
+# --------------------------------------------------------------------------------------------
+# Row spans against the dense gather (`_filters/spans.py`, `jitter.py`, `supersample.py`)
+# --------------------------------------------------------------------------------------------
+
+#: The soft filter (`method="soft"`, no blades) takes row spans when `max_radius >=` this, the dense
+#: gather below it. Read by `jaxdof/_filters/spans.py` (`exact_soft_filter`, and through it
+#: `coc_filter`, `render` and `fit_lens`).
+#:
+#: Measured for issue 19 (2026-12-01, `python fits/tune.py --only SPANS_MIN_RADIUS --rounds 9`;
+#: 2-core AMD EPYC shared with other jobs, load average 4-12; jax 0.10.2, git 7ae13c6): 256^2 RGB
+#: float32, radii uniform in [R/2, R], jitted forward, medians of 9 interleaved rounds of wall time.
+#: spans / dense time, three runs:
+#:
+#:     R     8    12    16    20    24    32    36    40    44    48    64
+#:     a   5.74  3.03  2.37  2.05  1.73  0.85   -    0.83   -    0.58  0.42
+#:     b   4.31  3.44  2.39  1.77  1.56  1.08   -    0.60   -    0.73  0.37
+#:     c     -     -   2.41    -     -   1.11  0.70  0.81  0.67  0.72    -
+#:
+#: The spans are not slower from R = 40 on in every run; at R = 16 the default is now the dense
+#: gather, the faster path (with 12 it took the spans, 2.4x the dense gather's time). The crossover
+#: grows with the frame (one run each): 64^2: 20 (spans / dense 1.33 at 16, 0.84 at 20, 0.38 at 32);
+#: 128^2: 24 (1.29 at 20, 0.94 at 24, 0.67 at 32); 1024^2: 48 (1.41 at 32, 0.86 at 48, 0.53 at 64;
+#: 40 not swept). A JVP along the image and the radius map (`--mode jvp`, 256^2) crosses earlier:
+#: 1.15 at 24, 0.72 at 32.
+#:
+#: History: 12 from `python fits/bench_speed.py --paths-only` (commit bbb9139, 2026-11-23; 256^2
+#: RGB, radii uniform in [0, R], CPU time: spans lost at R = 8 and won forward and fwd+grad from
+#: 12 on), measured before the dense gather became ~13x faster. Issue 19 then reported, on a quiet
+#: 2-core machine (256^2, radii in [R/2, R], forward, dense vs spans): R = 12: 12 vs 48 ms, 16: 19
+#: vs 69, 32: 68 vs 151, 48: 190 vs 165, 64: 329 vs 211 (R = 16's default 3.7x the faster path).
+SPANS_MIN_RADIUS = 40.0
+
+#: `method="jitter"` takes row spans from this window radius on, by the number of points `n`
+#: (`spans.crossover_for`: the entry of the first key `>= n`). The dense gather compares `n`
+#: thresholds at `~pi R^2` taps, the spans only at `O(R)` boundary taps but pay scatters that do not
+#: shrink with `n`: the more points, the smaller the crossover. Read by `jaxdof/_filters/jitter.py`
+#: (`jitter_filter`).
+#:
+#: Measured in commit 2547ad6 (2026-11-23), 2-core CPU, smooth depth, RGB float32, 48^2 and 256^2,
+#: one run, spans / dense time: n = 4: 2.6-4.4 at R = 8, 1.2-1.6 at 16, 0.8-1.1 at 24; n = 16:
+#: 1.3-1.6 at 8, 0.7-1.1 at 12, 0.5-0.8 at 16; n = 64: 0.7-1.3 at 8, 0.5-0.8 at 12. (Also measured
+#: before the dense gather's speed-up; `fits/tune.py` re-measures it.)
+JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, math.inf: 10.0}
+
+#: `method="supersample"` (the disc; a polygon is always gathered) takes row spans from this window
+#: radius on, by `n` (`spans.crossover_for`). The dense gather counts `n` sub-rows per mirror class,
+#: the spans only at `O(R)` boundary taps but pay scatters. Read by `jaxdof/_filters/supersample.py`
+#: (`supersample_filter`).
+#:
+#: Measured in commit c57b8e4 (2026-11-23), 2-core CPU, smooth depth, RGB float32, one run, spans /
+#: dense time at 256^2: n <= 4: 2.0-2.2 at R = 24; n = 8: 1.5 at 16, 0.88 at 24; n = 16: 1.1 at 16,
+#: 0.67 at 24. At 48^2 the spans win earlier (n = 2-4: 0.65-0.78 at R = 24; n = 8: 0.52 at 16): the
+#: thresholds follow the larger frame.
+SUPERSAMPLE_SPANS_MIN_RADIUS = {4: 32.0, 8: 24.0, 16: 20.0, math.inf: 16.0}
+
+# --------------------------------------------------------------------------------------------
+# Written out against looped
+# --------------------------------------------------------------------------------------------
+
+#: `count_below` compares against every threshold of the pixel's pattern (one gather of a row) up
+#: to this many points per pattern, and runs a binary search beyond. Read by
+#: `jaxdof/_filters/jitter.py` (`hit_thresholds`, `count_below`).
+#:
+#: Measured in commit 2547ad6 (2026-11-23), 2-core CPU, 256^2 RGB float32, R = 8, one run, compare
+#: / binary-search time: 0.34x at n = 4, 0.37x at 16, 0.44x at 32, 1.36x at 64.
+COMPARE_ALL_MAX = 32
+
+#: Up to this many sub-rows per pixel supersample's count writes its rows out (one fused
+#: elementwise pass); beyond, a `fori_loop` over them keeps the program small. Read by
+#: `jaxdof/_filters/supersample.py` (`_count_rows`).
+#:
+#: Measured in commit 2b49304 (2026-11-23), CPU, 32^2, R = 6: n = 64 written out compiled ~10x
+#: slower (15.6 s against 1.5 s before the fused counts; 1.1 s with the loop).
+UNROLL_ROWS = 16
+
+#: Up to this many FFT levels `layered`'s level loop is written out (XLA overlaps the levels'
+#: FFTs); beyond, a `lax.scan` keeps one spectrum live at a time. Read by
+#: `jaxdof/_filters/layered.py` (`layered_filter`).
+#:
+#: Measured in commit 3898a3a (2026-11-23), CPU, 256^2 RGB float32, three planes, R = 8: written out
+#: 0.8x the time of the scan. (Only three levels were timed; 8 bounds the live spectra.)
+UNROLL_LEVELS = 8
+
+#: Up to this many taps (radius <= 2.5: a 5 x 5 window) the tabulated gather writes its loop over
+#: mirror classes out (one weighted source per class read at each of its mirrored offsets) for XLA
+#: to schedule as one program; beyond, a scanned class loop. Read by
+#: `jaxdof/_filters/tabulated.py` (`tabulated_filter`).
+#:
+#: Measured in commits 3898a3a and a0598ee (2026-11-23), CPU, R = 2, three levels, RGB float32,
+#: 256^2 and 1024^2, one run each: 0.75x the scanned class loop's time and 0.6-0.7x that of every
+#: tap written out with its own look-up; with 37 taps or more the written-out program was slower
+#: than the loop.
+FUSED_MAX_TAPS = 25
+
+#: Up to this many levels the tabulated gather picks each pixel's weight by a chain of selects
+#: (fused by XLA into the weighting pass); beyond, by `jnp.take` (a gather). Read by
+#: `jaxdof/_filters/tabulated.py` (`_look_up`).
+#:
+#: Measured in commit 6f8a2aa (2026-11-23), CPU, R = 2, 512^2 and 1024^2, one run: the chain takes
+#: 0.45-0.7x the time of `take` for L = 3 and 8, 0.9x for L = 16.
+SELECT_MAX_LEVELS = 16
+
+#: Up to this many distinct values an index map is built on the host by one comparison pass per
+#: value; beyond, by `np.unique(..., return_inverse=True)` (an argsort). Read by
+#: `jaxdof/_filters/common.py` (`level_index`, through `unique_with_index`: `auto`, `tabulated`,
+#: `layered`).
+#:
+#: Measured in commit 19460d0 (2026-11-23), CPU, a 1024^2 map of three levels: 1-2 ms, against
+#: 20 ms for `np.unique`'s argsort and 8 ms for `np.searchsorted`; auto's inspection of a 1024^2
+#: three-plane map 25.6 -> 9.5 ms (tabulated, R = 2), 31.4 -> 13.2 ms (layered, R = 8).
+COMPARE_MAX_LEVELS = 16
+
+# --------------------------------------------------------------------------------------------
+# FFT against gather (`layered`, `auto`)
+# --------------------------------------------------------------------------------------------
+
+#: One FFT level of `layered` costs about this many taps of its direct sum with a two-level table;
+#: a tap costs `1 + L / 5` such taps with an `L`-level table (its look-up is a chain of `L`
+#: selects). `layered` takes the direct sum when `taps (1 + L / 5) < FFT_LEVEL_COST_IN_TAPS * L`.
+#: Read by `jaxdof/_filters/layered.py` (`direct_is_cheaper`).
+#:
+#: Measured in commit 0d53977 (2026-11-23), CPU, traced radius, RGB float32, direct / FFT time at
+#: 256^2 (48^2 in brackets): R = 2 (21 taps): 0.57 (0.88) at L = 2, 0.15-0.34 (0.30-0.50) at
+#: L = 4-16; R = 6 (137 taps): 1.04 (1.20) at L = 2, 0.44-0.65 (0.66-1.04) at L = 4-16; R = 8
+#: (241 taps): 1.67 (1.70) at L = 2, 0.88 (1.06) at L = 8, 1.04 (1.83) at L = 16.
+FFT_LEVEL_COST_IN_TAPS = 56.0
+
+#: `method="auto"` takes FFT layers when the blurred levels number at most `taps /` this (one FFT
+#: layer costs about this many taps of the tabulated gather). Read by `jaxdof/_filters/auto.py`
+#: (`max_layers`, `choose_method`).
+#:
+#: Measured in commit 8d4e187 (2026-11-23), CPU, float32 RGB, 4 levels, 2-core machine at load ~5:
+#: at 256 x 256 one layer cost ~60 taps (R = 8: 4 layers 9.1 ms, 241 taps 10.0 ms; R = 24:
+#: 10.3 ms against 71 ms), at 64 x 64 ~70 taps (R = 8: 0.79 ms against 0.66 ms).
+LAYER_COST_IN_TAPS = 64.0
+
+#: `method="auto"` never takes more FFT layers than this, whatever the window (the level
+#: assignment and the spectra grow with it). Not a measurement: a cap (set in commit 8faa32a,
+#: 2026-11-22); `LAYER_COST_IN_TAPS` decides below it. Read by `jaxdof/_filters/auto.py`
+#: (`max_layers`).
+MAX_LAYERS = 32
+
+#: `method="auto"` takes the tabulated gather (weights computed once per distinct radius, looked
+#: up per pixel) while the distinct radii number at most this fraction of the image's pixels, the
+#: soft filter beyond. Not measured when it was set (commit 8d4e187, 2026-11-23: "the table is
+#: small against the image"); `fits/tune.py` measures the tabulated gather against the soft filter
+#: as the fraction grows. Read by `jaxdof/_filters/auto.py` (`choose_method`).
+TABLE_LEVELS_PER_PIXEL = 1 / 8

@@ -1,0 +1,86 @@
+"""Semi-internal jaxdof: the parts beneath the public API, for the studies in `fits/` and for
+power users.
+
+**No stability promise.** Anything here may change its signature, its numbers or its name, or go,
+in any release and without deprecation (as `optimistix.internal` and `equinox.internal`). Code
+that only renders or fits needs nothing from here: use `jaxdof` itself.
+
+What is here (re-exports only):
+
+- **Filter kernels**, with the switches that the method objects choose for you: the exact soft
+  filter on a forced path (`exact_soft_filter(..., path="dense" | "spans" | "auto")`, and
+  `spans_filter`), the dense soft gather without the input checks of `jaxdof.coc_filter`
+  (`soft_filter`), the gather loops it is built from (`gather`, `symmetric_gather`, over
+  `tap_offsets(max_radius)`), and the kernels of the other methods (`hard_filter`,
+  `supersample_filter`, `jitter_filter`, `aperture_filter`, `layered_filter`, `tabulated_filter`,
+  several with a `path=` switch), all on a channels-last image `(H, W, C)` and a radius map
+  already clamped to `max_radius`; the level helpers `unique_with_index`, `level_index`; and
+  `choose_method` (also public as `jaxdof.choose_method`).
+- **Tuning**: `tuning`, the module of measured crossovers and cost constants
+  (`jaxdof/_tuning.py`, re-measured by `fits/tune.py`), and the filter modules whose own globals
+  `fits/tune.py` sets while it compiles a candidate (`filters_common`, `filters_jitter`,
+  `filters_layered`, `filters_supersample`, `filters_tabulated`).
+- **Fit helpers**: `auto_levels(shape, r_init)` (the automatic pyramid rule),
+  `max_circle(lenses, depth)` (the largest circle of lenses over a depth map),
+  `start_lenses(base, depth, *, free, starts, fcap=None)` (`fit_lens`'s starts),
+  `window_for(radius, cap)` (its window policy), `record_stages()` (time the compiled stages of
+  `fit_lens` calls: `with record_stages() as log: fit_lens(...)`), and the stages themselves
+  (`fit_starts`, `finish`, `run_stage`).
+- **Model adequacy**: `adequacy` (the between-tile test on a fit's residual and Jacobian),
+  `rounding_noise` (its noise floor), `ADEQUACY_ALPHA` (its default significance level).
+- **Corrections**: `edge_distance` (distance to the nearest depth edge, under `jaxdof.edge_weight`),
+  `kernel_variance` (the filter kernel's variance, under `jaxdof.footprint_prefilter`), and the
+  study-only candidates that lost to `footprint_prefilter` against ray tracing
+  (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
+"""
+
+# A renamed re-export is one ruff cannot tell from an unused import: hence the noqa below.
+from .. import _tuning as tuning  # noqa: F401
+from .._corrections import (
+    edge_distance as edge_distance,
+    kernel_variance as kernel_variance,
+)
+from .._filters import (  # noqa: F401
+    common as filters_common,
+    jitter as filters_jitter,
+    layered as filters_layered,
+    supersample as filters_supersample,
+    tabulated as filters_tabulated,
+)
+from .._filters.aperture import aperture_filter as aperture_filter
+from .._filters.auto import choose_method as choose_method
+from .._filters.common import (
+    level_index as level_index,
+    tap_offsets as tap_offsets,
+    unique_with_index as unique_with_index,
+)
+from .._filters.hard import hard_filter as hard_filter
+from .._filters.jitter import jitter_filter as jitter_filter
+from .._filters.layered import layered_filter as layered_filter
+from .._filters.soft import (
+    gather as gather,
+    soft_filter as soft_filter,
+    symmetric_gather as symmetric_gather,
+)
+from .._filters.spans import (
+    exact_soft_filter as exact_soft_filter,
+    spans_filter as spans_filter,
+)
+from .._filters.supersample import supersample_filter as supersample_filter
+from .._filters.tabulated import tabulated_filter as tabulated_filter
+from .._fit import (
+    auto_levels as auto_levels,
+    finish as finish,
+    fit_starts as fit_starts,
+    max_circle as max_circle,
+    record_stages as record_stages,
+    run_stage as run_stage,
+    start_lenses as start_lenses,
+    window_for as window_for,
+)
+from .._fit.adequacy import (  # noqa: F401
+    ALPHA as ADEQUACY_ALPHA,
+    adequacy as adequacy,
+    rounding_noise as rounding_noise,
+)
+from ._study import footprint_radius as footprint_radius, pixel_prefilter as pixel_prefilter
