@@ -6,17 +6,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._custom_types import DepthLike, Image, ImageLike, RadiusLike
-from .aliases import _ALIASES, METHOD_ALIASES, as_method
+from .aliases import METHOD_ALIASES, as_method
 from .base import AbstractMethod
 from .common import check_depth_map, check_image_and_radius, check_max_radius, is_concrete
-
-
-# Compatibility, until their users move to the method objects (then delete both): `_cli/parse.py`
-# imports `METHODS` (to become `METHOD_ALIASES`), `fits/tradeoff.py` both (to become
-# `as_method(name).differentiable_in_radius`). Derived from the classes: no second table to keep
-# in step.
-METHODS = METHOD_ALIASES
-DIFFERENTIABLE_IN_RADIUS = {name: cls.differentiable_in_radius for name, cls in _ALIASES.items()}
 
 
 def coc_filter(
