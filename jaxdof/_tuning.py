@@ -1,36 +1,41 @@
-"""Every measured crossover and cost constant of jaxdof, with its provenance (STYLE.md, practice 18).
+"""Every measured crossover and cost constant of jaxdof, with its provenance (STYLE.md, item 18).
 
 **What belongs here.** A constant that changes only how fast (or in how much memory) a result is
 computed, never the result beyond float rounding, and whose value was read off a measurement: the
 radius from which row spans beat the dense gather, the cost of one FFT level in gather taps, the
 size up to which a loop is written out. Definitions stay with their code: mathematical constants
-(`_overlap._SERIES_BELOW`, `soft._T2_MAX`), constants a proof fixes (`spans.TAPS`), constants that
-change the numbers (`jitter.PATTERNS`, `_corrections._TABLE_MAX`, `_corrections._VARIANCE_COLUMNS`,
-`occlusion.DEFAULT_JUMP`), and the fitting policy of `_fit.py` (`_WINDOWS`, `_PYRAMID_*`,
-`_COARSE_TOL`, `_CLIP`), which changes which lens a fit returns or when it stops.
+(`_overlap._SERIES_BELOW`, `_filters/soft._T2_MAX`), constants a proof fixes
+(`_filters/spans.TAPS`), constants that change the numbers (`_filters/jitter.PATTERNS`,
+`_corrections._TABLE_MAX`, `_corrections._VARIANCE_COLUMNS`, `_filters/occlusion.DEFAULT_JUMP`),
+and the fitting policy (`_fit/strategies.py`: `_WINDOWS`, `_PYRAMID_*`, `_COARSE_TOL`;
+`_fit/layout._CLIP`), which changes which lens a fit returns or when it stops.
 
 **Re-measuring.** `python fits/tune.py` asks each constant's question again on the current machine
 and prints a table (name, old value, measured value) and the lines to paste here;
 `python fits/tune.py --only NAME` re-measures one. After pasting, update the constant's comment
-with the new figures and the run's conditions (the script prints them).
+with the new figures and the run's conditions (the script prints them). Semi-internal access:
+`jaxdof.internal.tuning`.
 
 **Where they were measured.** Unless a comment says otherwise: a 2-core AMD EPYC CPU shared with
-other jobs (load average 1-20), jax/jaxlib 0.10.2, float32, jitted, wall time; "one run" means
-one interleaved run whose ratios, not absolute times, are what to read.
+other jobs, jax/jaxlib 0.10.2, float32, jitted; "one run" means one interleaved run whose ratios,
+not absolute times, are what to read.
 
 Measured choices that are code rather than a number (no constant to re-measure; their figures stay
-beside the code): the residual's Jacobian-materialising JVP in `_fit.py` (1.5-1.9x less time per
-solve, 24 x 24 scene of `fits/recover.py`); no coarse pyramid level from one start (`_fit.py`,
-0.5-0.7x the speed otherwise); one scattered index per source in `aperture.py` (0.4-0.45x the
-forward time); channels first in `tabulated._classes_written_out` and in `layered`'s FFTs; a
-weight ending in a division in `soft._weight_and_slope` (2.8-3.4x slower otherwise); the
-supersample count's sub-rows summed one at a time (3.5-5x slower as an array); layered's level
-search by min-reductions instead of a sort (14 ms of 21 ms at 256^2 before).
+beside the code): the residual's Jacobian-materialising JVP (`_fit/residual.py`: 1.5-1.9x less
+time per solve, 24 x 24 scene of `fits/recover.py`); no coarse pyramid level from one start
+(`_fit/fit.py`: 0.5-0.7x the speed otherwise); one scattered index per source in
+`_filters/aperture.py` (0.4-0.45x the forward time); channels first in
+`tabulated._classes_written_out` and in `layered`'s FFTs; a weight ending in a division in
+`soft._weight_and_slope` (2.8-3.4x slower otherwise); the supersample count's sub-rows summed one
+at a time (3.5-5x slower as an array); layered's level search by min-reductions instead of a sort
+(14 ms of 21 ms at 256^2 before).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Iterator
 
 
 # --------------------------------------------------------------------------------------------
@@ -52,11 +57,11 @@ import math
 #:     c     -     -   2.41    -     -   1.11  0.70  0.81  0.67  0.72    -
 #:
 #: The spans are not slower from R = 40 on in every run; at R = 16 the default is now the dense
-#: gather, the faster path (with 12 it took the spans, 2.4x the dense gather's time). The crossover
-#: grows with the frame (one run each): 64^2: 20 (spans / dense 1.33 at 16, 0.84 at 20, 0.38 at 32);
-#: 128^2: 24 (1.29 at 20, 0.94 at 24, 0.67 at 32); 1024^2: 48 (1.41 at 32, 0.86 at 48, 0.53 at 64;
-#: 40 not swept). A JVP along the image and the radius map (`--mode jvp`, 256^2) crosses earlier:
-#: 1.15 at 24, 0.72 at 32.
+#: gather, the faster path (with 12 it took the spans, 2.4x the dense gather's time). Smaller
+#: frames cross earlier, larger ones no later (`--size`): 64^2: 20 (spans / dense 1.33 at 16, 0.84
+#: at 20, 0.38 at 32); 128^2: 24 (1.29 at 20, 0.94 at 24, 0.67 at 32); 1024^2, two runs: 40 (1.41,
+#: 1.26 at 32; 0.84 at 40; 0.86, 0.83 at 48; 0.53 at 64). A JVP along the image and the radius map
+#: (`--mode jvp`, 256^2) crosses earlier: 1.15 at 24, 0.72 at 32.
 #:
 #: History: 12 from `python fits/bench_speed.py --paths-only` (commit bbb9139, 2026-11-23; 256^2
 #: RGB, radii uniform in [0, R], CPU time: spans lost at R = 8 and won forward and fwd+grad from
@@ -75,6 +80,11 @@ SPANS_MIN_RADIUS = 40.0
 #: one run, spans / dense time: n = 4: 2.6-4.4 at R = 8, 1.2-1.6 at 16, 0.8-1.1 at 24; n = 16:
 #: 1.3-1.6 at 8, 0.7-1.1 at 12, 0.5-0.8 at 16; n = 64: 0.7-1.3 at 8, 0.5-0.8 at 12. (Also measured
 #: before the dense gather's speed-up; `fits/tune.py` re-measures it.)
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 256^2, spans / dense: n = 4: 1.69 at R = 16, 1.10 at 20, 1.03 at 24, 0.78 at
+#: 32; n = 16: 1.13 at 12, 0.82 at 16, 0.91 at 20; n = 64: 1.17 at 12, 0.88 at 16, 0.65 at 20. Read
+#: off: {4: 24 (24 a tie), 16: 14, inf: 16}.
 JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, math.inf: 10.0}
 
 #: `method="supersample"` (the disc; a polygon is always gathered) takes row spans from this window
@@ -86,6 +96,12 @@ JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, math.inf: 10.0}
 #: dense time at 256^2: n <= 4: 2.0-2.2 at R = 24; n = 8: 1.5 at 16, 0.88 at 24; n = 16: 1.1 at 16,
 #: 0.67 at 24. At 48^2 the spans win earlier (n = 2-4: 0.65-0.78 at R = 24; n = 8: 0.52 at 16): the
 #: thresholds follow the larger frame.
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 256^2, spans / dense: n = 4: 2.28 at R = 32, 1.32 at 40, 1.17 at 48, 0.79 at
+#: 64; n = 8: 3.09 at 24, 1.63 at 32, 1.27 at 48, 0.65 at 64; n = 16: 1.89 at 20, 1.19 at 32, 0.91
+#: at 40; n = 32: 1.86 at 16, 1.12 at 24, 0.79 at 32. Read off: {4: 64, 8: 64, 16: 40, inf: 32}: the
+#: dense gather's speed-up moved every crossover up; the old table takes spans up to 3.1x slower.
 SUPERSAMPLE_SPANS_MIN_RADIUS = {4: 32.0, 8: 24.0, 16: 20.0, math.inf: 16.0}
 
 # --------------------------------------------------------------------------------------------
@@ -98,6 +114,9 @@ SUPERSAMPLE_SPANS_MIN_RADIUS = {4: 32.0, 8: 24.0, 16: 20.0, math.inf: 16.0}
 #:
 #: Measured in commit 2547ad6 (2026-11-23), 2-core CPU, 256^2 RGB float32, R = 8, one run, compare
 #: / binary-search time: 0.34x at n = 4, 0.37x at 16, 0.44x at 32, 1.36x at 64.
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): compare / search 0.45 at n = 4, 0.36 at 16, 1.03 at 32, 1.48 at 64: 32 stays.
 COMPARE_ALL_MAX = 32
 
 #: Up to this many sub-rows per pixel supersample's count writes its rows out (one fused
@@ -106,6 +125,11 @@ COMPARE_ALL_MAX = 32
 #:
 #: Measured in commit 2b49304 (2026-11-23), CPU, 32^2, R = 6: n = 64 written out compiled ~10x
 #: slower (15.6 s against 1.5 s before the fused counts; 1.1 s with the loop).
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 128^2, R = 4, written out / loop, run time: 1.32 at n = 4, 1.67 at 8, 1.36 at
+#: 16, 29 at 32, 83 at 64; compile 1.3 / 1.2 s at 4, 4.8 / 1.8 s at 16, 11.1 / 2.1 s at 64. Read
+#: off: 0 (the loop at every n).
 UNROLL_ROWS = 16
 
 #: Up to this many FFT levels `layered`'s level loop is written out (XLA overlaps the levels'
@@ -114,6 +138,10 @@ UNROLL_ROWS = 16
 #:
 #: Measured in commit 3898a3a (2026-11-23), CPU, 256^2 RGB float32, three planes, R = 8: written out
 #: 0.8x the time of the scan. (Only three levels were timed; 8 bounds the live spectra.)
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 256^2, R = 8, written out / scan 0.84 at L = 3, 0.89 at 8, 1.34 at 12, 0.88
+#: at 16 (compile 5-7 s against 0.5 s): 8 stays.
 UNROLL_LEVELS = 8
 
 #: Up to this many taps (radius <= 2.5: a 5 x 5 window) the tabulated gather writes its loop over
@@ -125,6 +153,10 @@ UNROLL_LEVELS = 8
 #: 256^2 and 1024^2, one run each: 0.75x the scanned class loop's time and 0.6-0.7x that of every
 #: tap written out with its own look-up; with 37 taps or more the written-out program was slower
 #: than the loop.
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 256^2, written out / scanned 0.57 at 21 taps, 1.00 at 25, 6.3 at 37 and 45:
+#: 25 stays.
 FUSED_MAX_TAPS = 25
 
 #: Up to this many levels the tabulated gather picks each pixel's weight by a chain of selects
@@ -133,16 +165,24 @@ FUSED_MAX_TAPS = 25
 #:
 #: Measured in commit 6f8a2aa (2026-11-23), CPU, R = 2, 512^2 and 1024^2, one run: the chain takes
 #: 0.45-0.7x the time of `take` for L = 3 and 8, 0.9x for L = 16.
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 512^2, R = 2, select / take 0.94 at L = 3 and 8, 1.22 at 16, 0.93 at 24, 1.01
+#: at 32 (CPU time 0.88-1.06): no difference above the noise.
 SELECT_MAX_LEVELS = 16
 
 #: Up to this many distinct values an index map is built on the host by one comparison pass per
 #: value; beyond, by `np.unique(..., return_inverse=True)` (an argsort). Read by
-#: `jaxdof/_filters/common.py` (`level_index`, through `unique_with_index`: `auto`, `tabulated`,
-#: `layered`).
+#: `jaxdof/_filters/common.py`, there as `_COMPARE_MAX_LEVELS` (`level_index`, through
+#: `unique_with_index`: `auto`, `tabulated`, `layered`).
 #:
 #: Measured in commit 19460d0 (2026-11-23), CPU, a 1024^2 map of three levels: 1-2 ms, against
 #: 20 ms for `np.unique`'s argsort and 8 ms for `np.searchsorted`; auto's inspection of a 1024^2
 #: three-plane map 25.6 -> 9.5 ms (tabulated, R = 2), 31.4 -> 13.2 ms (layered, R = 8).
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 1024^2, compare / argsort 0.11 at L = 3, 0.45 at 16, 0.64 at 24, 0.66 at 32,
+#: 0.90 at 48, 1.00 at 64. Read off: 48.
 COMPARE_MAX_LEVELS = 16
 
 # --------------------------------------------------------------------------------------------
@@ -158,6 +198,13 @@ COMPARE_MAX_LEVELS = 16
 #: 256^2 (48^2 in brackets): R = 2 (21 taps): 0.57 (0.88) at L = 2, 0.15-0.34 (0.30-0.50) at
 #: L = 4-16; R = 6 (137 taps): 1.04 (1.20) at L = 2, 0.44-0.65 (0.66-1.04) at L = 4-16; R = 8
 #: (241 taps): 1.67 (1.70) at L = 2, 0.88 (1.06) at L = 8, 1.04 (1.83) at L = 16.
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 256^2, R = 2-16, L = 2-16, direct / FFT: R = 2: 0.12-0.34 at L = 2-8, 1.53 at
+#: 16; R = 4: 0.18-0.40; R = 8: 0.42-0.76 at L = 2-8, 1.21 at 16; R = 12: 1.39 at L = 2, 0.60 at 8,
+#: 1.92 at 16; R = 16: 1.47-2.79. The rule with 56 errs at 5 of 20 points (worst 2.4x, R = 8,
+#: L = 2), with 170 at 3 (worst 1.9x): the direct sum got cheaper, and FFTs of 16 levels (scanned)
+#: cost less than of 8 (written out), which the rule's form does not follow. Read off: 170.
 FFT_LEVEL_COST_IN_TAPS = 56.0
 
 #: `method="auto"` takes FFT layers when the blurred levels number at most `taps /` this (one FFT
@@ -167,6 +214,11 @@ FFT_LEVEL_COST_IN_TAPS = 56.0
 #: Measured in commit 8d4e187 (2026-11-23), CPU, float32 RGB, 4 levels, 2-core machine at load ~5:
 #: at 256 x 256 one layer cost ~60 taps (R = 8: 4 layers 9.1 ms, 241 taps 10.0 ms; R = 24:
 #: 10.3 ms against 71 ms), at 64 x 64 ~70 taps (R = 8: 0.79 ms against 0.66 ms).
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): FFT / tabulated at 64^2: 1.45 at R = 4, 0.51 at 8, 0.27 at 16, 0.17 at 24; at
+#: 256^2: 1.84, 2.51 (CPU time 0.90), 0.23, 0.17: a layer costs 25-82 taps (geometric mean 54), and
+#: R = 8 falls on either side by frame: 64 stays.
 LAYER_COST_IN_TAPS = 64.0
 
 #: `method="auto"` never takes more FFT layers than this, whatever the window (the level
@@ -180,4 +232,45 @@ MAX_LAYERS = 32
 #: soft filter beyond. Not measured when it was set (commit 8d4e187, 2026-11-23: "the table is
 #: small against the image"); `fits/tune.py` measures the tabulated gather against the soft filter
 #: as the fraction grows. Read by `jaxdof/_filters/auto.py` (`choose_method`).
+#:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
+#: issue 19's report): 256^2, R = 8, tabulated / soft 0.55 at L = HW/256, 1.00 at HW/32, 1.21 at
+#: HW/8, 1.25 at HW/2, 1.67 at HW. Read off: 1 / 32.
 TABLE_LEVELS_PER_PIXEL = 1 / 8
+
+
+_NAMES = (
+    "SPANS_MIN_RADIUS",
+    "JITTER_SPANS_MIN_RADIUS",
+    "SUPERSAMPLE_SPANS_MIN_RADIUS",
+    "COMPARE_ALL_MAX",
+    "UNROLL_ROWS",
+    "UNROLL_LEVELS",
+    "FUSED_MAX_TAPS",
+    "SELECT_MAX_LEVELS",
+    "COMPARE_MAX_LEVELS",
+    "FFT_LEVEL_COST_IN_TAPS",
+    "LAYER_COST_IN_TAPS",
+    "MAX_LAYERS",
+    "TABLE_LEVELS_PER_PIXEL",
+)
+
+
+@contextlib.contextmanager
+def override(**values) -> Iterator[None]:
+    """Run with some tuning constants replaced, e.g. `with override(SPANS_MIN_RADIUS=16.0): ...`.
+
+    For measuring a crossover (`fits/tune.py`) and for tests that force one side of a rule. The
+    filters read these constants when they are traced, so compile afresh inside the block: a
+    function jitted before keeps the value it was traced with. Not thread-safe (process-wide).
+    """
+    unknown = sorted(set(values) - set(_NAMES))
+    if unknown:
+        raise ValueError(f"not tuning constants: {unknown}; the table holds {_NAMES}")
+    here = globals()
+    saved = {name: here[name] for name in values}
+    here.update(values)
+    try:
+        yield
+    finally:
+        here.update(saved)

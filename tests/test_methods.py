@@ -28,11 +28,10 @@ from jaxdof import (
     coc_radius,
     render,
 )
-from jaxdof._filters import METHOD_ALIASES, as_method, layered, tabulated
+from jaxdof._filters import METHOD_ALIASES, as_method, layered
 from jaxdof._filters.auto import choose_method, max_layers
 from jaxdof._filters.common import tap_offsets, unique_with_index, window_half_width
 from jaxdof._filters.layered import (
-    UNROLL_LEVELS,
     assign_levels,
     assign_numpy,
     fft_length,
@@ -41,6 +40,7 @@ from jaxdof._filters.layered import (
 )
 from jaxdof._filters.shape import unit_halfplanes
 from jaxdof._filters.tabulated import Tabulated, radius_levels, tabulated_filter
+from jaxdof.internal import tuning
 
 from .helpers import CATALOGUE, method_id
 
@@ -492,11 +492,11 @@ def test_aperture_splat_has_the_discs_second_moment():
 
 
 @pytest.fixture(params=["fft", "direct"])
-def layered_path(request, monkeypatch):
+def layered_path(request):
     """Force `layered`'s FFTs or its direct sum (normally chosen by cost from the window and L)."""
     cost = 0.0 if request.param == "fft" else math.inf
-    monkeypatch.setattr(layered, "FFT_LEVEL_COST_IN_TAPS", cost)
-    return request.param
+    with tuning.override(FFT_LEVEL_COST_IN_TAPS=cost):
+        yield request.param
 
 
 def _levels_scene(levels, h=26, w=28, seed=3):
@@ -519,12 +519,12 @@ def test_layered_equals_soft_with_exactly_L_levels(jit, layered_path):
     assert _err(coc_filter(image, radius, method=Layered(layers=3)), soft) > 1e-2
 
 
-def test_layered_scan_path_equals_soft(monkeypatch):
+def test_layered_scan_path_equals_soft():
     """More FFT levels than are unrolled: the scan over levels gives the same scatter."""
-    monkeypatch.setattr(layered, "FFT_LEVEL_COST_IN_TAPS", 0.0)  # the FFTs, whatever the cost
-    radii = [0.0] + [1.0 + 0.5 * k for k in range(UNROLL_LEVELS + 2)]
+    radii = [0.0] + [1.0 + 0.5 * k for k in range(tuning.UNROLL_LEVELS + 2)]
     image, radius = _levels_scene(radii, 24, 23)
-    out = coc_filter(image, radius, method=Layered(layers=len(radii)), max_radius=radii[-1])
+    with tuning.override(FFT_LEVEL_COST_IN_TAPS=0.0):  # the FFTs, whatever the cost
+        out = coc_filter(image, radius, method=Layered(layers=len(radii)), max_radius=radii[-1])
     assert _err(out, coc_filter(image, radius)) < 1e-12
 
 
@@ -681,18 +681,20 @@ def test_layered_keeps_sharp_pixels_sharp_when_binning(layered_path):
 
 @pytest.mark.parametrize("select_max", [16, 0], ids=["select-chain", "take"])
 @pytest.mark.parametrize("max_radius", [6.5, 2.0, 2.5], ids=["class-loop", "fused-21", "fused-25"])
-def test_tabulated_equals_soft(monkeypatch, select_max, max_radius):
+def test_tabulated_equals_soft(select_max, max_radius):
     """The looked-up weights are the soft filter's: same result, depth edges and identity level
     included, through either look-up (a chain of selects for few levels, a gather for many) and
     either loop (the class loop, or every tap fused for windows of at most 25 taps)."""
-    monkeypatch.setattr(tabulated, "SELECT_MAX_LEVELS", select_max)
     radii = sorted({r for r in [0.2, 1.7, 3.25, 6.0, 6.5] if r <= max_radius} | {max_radius})
     image, radius = _levels_scene(radii)
     levels, index = radius_levels(radius)
     assert np.array_equal(levels, [0.0] + radii[1:])
-    fused = len(tap_offsets(max_radius)) <= tabulated.FUSED_MAX_TAPS
+    fused = len(tap_offsets(max_radius)) <= tuning.FUSED_MAX_TAPS
     assert fused == (max_radius < 3)
-    out = tabulated_filter(jnp.asarray(image), max_radius=max_radius, levels=levels, index=index)
+    with tuning.override(SELECT_MAX_LEVELS=select_max):
+        out = tabulated_filter(
+            jnp.asarray(image), max_radius=max_radius, levels=levels, index=index
+        )
     assert _err(out, coc_filter(image, radius, max_radius=max_radius)) < 1e-13
 
 

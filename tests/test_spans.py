@@ -10,11 +10,14 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxdof
-import jaxdof._filters.spans as spans
 from jaxdof._filters.soft import soft_filter
-from jaxdof._filters.spans import SPANS_MIN_RADIUS, exact_soft_filter, spans_filter
+from jaxdof._filters.spans import TAPS, exact_soft_filter, spans_filter
+from jaxdof.internal import tuning
 
 from .helpers import scatter_reference, step_scene
+
+
+SPANS_MIN_RADIUS = tuning.SPANS_MIN_RADIUS
 
 
 @functools.partial(jax.jit, static_argnames="max_radius")
@@ -63,7 +66,7 @@ def test_two_taps_cover_the_boundary():
         side = b - np.maximum(a + 1, ks) + 1  # side row k starts at max(a + 1, k)
         cap = b - np.maximum(a + 1, ks + 1) + 1  # cap column k starts at max(a + 1, k + 1)
         worst = max(worst, side.max(), cap.max())
-    assert worst == spans.TAPS
+    assert worst == TAPS
 
 
 @pytest.mark.parametrize("max_radius", [0.7, 2.5, 9.0])
@@ -182,24 +185,29 @@ def test_jit_and_vmap_equal_eager():
     np.testing.assert_allclose(jax.jit(jax.vmap(f))(images, radii), jitted, rtol=0, atol=1e-14)
 
 
-def test_coc_filter_dispatch(monkeypatch):
+def _takes_spans(f, *args) -> bool:
+    """Whether `f` runs the row-span path: only it builds its rows by a cumulative sum."""
+    return "cumsum" in str(jax.make_jaxpr(f)(*args))
+
+
+def test_coc_filter_dispatch():
     """`Soft()` takes the span path from `SPANS_MIN_RADIUS` on, the dense gather below."""
-    calls = []
-    real = spans.spans_filter
-
-    def spy(*args, **kwargs):
-        calls.append(kwargs["max_radius"])
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(spans, "spans_filter", spy)
     rng = np.random.default_rng(14)
     image = rng.uniform(size=(10, 10))
     radius = rng.uniform(0, 3, (10, 10))
+    assert _takes_spans(
+        lambda i, r: exact_soft_filter(i[..., None], r, max_radius=5.0, path="spans"), image, radius
+    )
+    assert not _takes_spans(
+        lambda i, r: exact_soft_filter(i[..., None], r, max_radius=5.0, path="dense"), image, radius
+    )
     below = max(SPANS_MIN_RADIUS - 1, 0.0)
-    jax.eval_shape(lambda i, r: jaxdof.coc_filter(i, r, max_radius=below), image, radius)
-    assert calls == []
-    out = jax.jit(lambda i, r: jaxdof.coc_filter(i, r, max_radius=SPANS_MIN_RADIUS))(image, radius)
-    assert calls == [SPANS_MIN_RADIUS]
+    assert not _takes_spans(lambda i, r: jaxdof.coc_filter(i, r, max_radius=below), image, radius)
+    f = lambda i, r: jaxdof.coc_filter(i, r, max_radius=SPANS_MIN_RADIUS)
+    assert _takes_spans(f, image, radius)
+    with tuning.override(SPANS_MIN_RADIUS=4.0):  # the rule, not a fixed radius, decides
+        assert _takes_spans(lambda i, r: jaxdof.coc_filter(i, r, max_radius=5.0), image, radius)
+    out = jax.jit(f)(image, radius)
     want = dense(jnp.asarray(image)[..., None], jnp.asarray(radius), max_radius=SPANS_MIN_RADIUS)
     want = want[..., 0]
     np.testing.assert_allclose(out, want, rtol=0, atol=1e-12)

@@ -8,6 +8,7 @@ from typing import ClassVar, final
 import numpy as np
 from jaxtyping import Array, Float
 
+from .. import _tuning
 from .base import AbstractMethod
 from .common import is_concrete, tap_offsets
 from .layered import Layered
@@ -17,21 +18,11 @@ from .tabulated import Tabulated, radius_levels
 
 logger = logging.getLogger("jaxdof")
 
-# Cost of one FFT layer in taps of the tabulated gather, measured on CPU (float32 RGB, 4 levels;
-# 2-core machine at load ~5): at 256 x 256 one layer cost ~60 taps (R = 8: 4 layers 9.1 ms, 241
-# taps 10.0 ms; R = 24: 10.3 ms against 71 ms), at 64 x 64 ~70 taps (R = 8: 0.79 ms against 0.66
-# ms). Layers are picked only where they win by this margin.
-LAYER_COST_IN_TAPS = 64.0
-#: Never more FFT layers than this (the assignment and the spectra grow with it).
-MAX_LAYERS = 32
-#: The table of weights is used while it has at most this many levels per pixel of the image.
-TABLE_LEVELS_PER_PIXEL = 1 / 8
-
 
 def max_layers(max_radius: float) -> int:
     """Largest number of levels for which FFT layers beat the tabulated gather at `max_radius`."""
     taps = len(tap_offsets(max_radius))
-    return int(min(MAX_LAYERS, taps // LAYER_COST_IN_TAPS))
+    return int(min(_tuning.MAX_LAYERS, taps // _tuning.LAYER_COST_IN_TAPS))
 
 
 def distinct_levels(radius) -> int:
@@ -62,7 +53,7 @@ def choose_method(radius, *, max_radius: float | None = None) -> str:
     blurred = n - bool(np.any(r <= 0.5))  # the identity level is copied, not convolved
     if blurred <= max_layers(max_radius):
         return "convolution" if n == 1 else "layered"
-    return "tabulated" if n <= max(1.0, r.size * TABLE_LEVELS_PER_PIXEL) else "soft"
+    return "tabulated" if n <= max(1.0, r.size * _tuning.TABLE_LEVELS_PER_PIXEL) else "soft"
 
 
 @final

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._custom_types import DepthLike, Image, ImageLike, RadiusLike
-from .aliases import METHOD_ALIASES, as_method
+from .aliases import as_method
 from .base import AbstractMethod
 from .common import check_depth_map, check_image_and_radius, check_max_radius, is_concrete
 

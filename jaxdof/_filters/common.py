@@ -11,6 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike
 
+from .. import _tuning
+
 
 def is_concrete(*xs) -> bool:
     """True when no argument is a tracer, i.e. its values can be inspected in Python."""
@@ -122,12 +124,6 @@ def check_depth_map(depth, shape: tuple[int, int]) -> Array:
     return depth
 
 
-# Up to this many distinct values the index map is built by one comparison pass per value: 1-2 ms on
-# a 1024^2 map of three levels (CPU), where `np.unique(..., return_inverse=True)` (an argsort) took
-# 20 ms and `np.searchsorted` 8 ms; beyond it the argsort.
-_COMPARE_MAX_LEVELS = 16
-
-
 def unique_with_index(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`(sorted distinct values (L,), index map int32 of values' shape)`, as `np.unique` with
     `return_inverse=True`, without its argsort when the values are few."""
@@ -137,7 +133,7 @@ def unique_with_index(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def level_index(values: np.ndarray, uniq: np.ndarray) -> np.ndarray:
     """Position of every entry of `values` in `uniq = np.unique(values)`, int32, `values`' shape."""
-    if uniq.size > _COMPARE_MAX_LEVELS:
+    if uniq.size > _tuning.COMPARE_MAX_LEVELS:
         inverse = np.unique(values, return_inverse=True)[1]
         return inverse.reshape(values.shape).astype(np.int32)
     index = np.zeros(values.shape, np.int32)

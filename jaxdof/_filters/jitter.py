@@ -28,6 +28,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
+from .. import _tuning
 from .base import AbstractMethod
 from .common import check_int, check_key, is_concrete, tap_offsets
 from .spans import crossover_for, spans_filter, spans_layout, use_spans
@@ -36,20 +37,6 @@ from .taps import gather_taps
 
 #: Latin hypercubes drawn per key; each output pixel uses one, picked at random.
 PATTERNS = 16
-#: `path="auto"` uses row spans from this window radius on, looked up by the number of points `n`
-#: (`spans.crossover_for`: the first key `>= n`). The dense gather compares `n` thresholds at `~pi R^2` taps; the spans
-#: only at `O(R)` boundary taps, but pay scatters that do not shrink with `n`: the more points, the
-#: smaller the crossover. Measured on the 2-core CPU (smooth depth, RGB float32, 48^2 and 256^2,
-#: one run; spans / dense time): n = 4: 2.6-4.4 at R = 8, 1.2-1.6 at 16, 0.8-1.1 at 24; n = 16:
-#: 1.3-1.6 at 8, 0.7-1.1 at 12, 0.5-0.8 at 16; n = 64: 0.7-1.3 at 8, 0.5-0.8 at 12.
-JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, math.inf: 10.0}
-
-
-#: `count_below` compares against every threshold of the pixel's pattern up to this many per
-#: pattern (one gather of a row), and searches beyond. Measured on the 2-core CPU (256^2, RGB
-#: float32, R = 8, one run; time against the binary search): 0.34x at n = 4, 0.37x at 16, 0.44x at
-#: 32, 1.36x at 64.
-COMPARE_ALL_MAX = 32
 
 
 def jitter_points(key: Array, count: int, samples: int, dtype) -> Float[Array, "count n 2"]:
@@ -70,7 +57,7 @@ def hit_thresholds(points: Float[Array, "p n 2"], offsets: np.ndarray) -> Float[
     o = jnp.asarray(offsets, points.dtype)
     d2 = jnp.sort(((o[:, None, None, :] + points[None]) ** 2).sum(-1), axis=-1)
     n = points.shape[1]
-    m = n if n <= COMPARE_ALL_MAX else 1 << (n - 1).bit_length()
+    m = n if n <= _tuning.COMPARE_ALL_MAX else 1 << (n - 1).bit_length()
     return jnp.pad(d2, ((0, 0), (0, 0), (0, m - n)), constant_values=jnp.inf)
 
 
@@ -85,7 +72,7 @@ def count_below(
     dependent single-element gathers, fewer comparisons).
     """
     m = rows.shape[1]
-    if m <= COMPARE_ALL_MAX:
+    if m <= _tuning.COMPARE_ALL_MAX:
         below = rows.at[pattern].get(mode="promise_in_bounds") <= r2[..., None]
         return below.sum(-1, dtype=pattern.dtype)
     assert m & (m - 1) == 0, "the binary search needs rows of a power-of-two length"
@@ -113,7 +100,7 @@ def jitter_filter(
     where every point hits, and counts only on the boundary taps: `spans.py`), or `"auto"`: spans
     from `JITTER_SPANS_MIN_RADIUS` on. The same counts either way (the numbers agree to rounding).
     """
-    spans = use_spans(path, max_radius, crossover_for(samples, JITTER_SPANS_MIN_RADIUS))
+    spans = use_spans(path, max_radius, crossover_for(samples, _tuning.JITTER_SPANS_MIN_RADIUS))
     dtype = image.dtype
     r = lax.stop_gradient(radius)
     small = r <= 0.5

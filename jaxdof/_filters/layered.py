@@ -27,6 +27,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float, Int
 
+from .. import _tuning
 from .._overlap import circle_pixel_overlap
 from .base import AbstractMethod
 from .common import check_int, level_index, tap_offsets, window_half_width
@@ -114,24 +115,10 @@ def disc_kernels(levels: Float[Array, " l"], half_width: int) -> Float[Array, "l
     return jnp.where(big, area / (math.pi * rs * rs), delta)
 
 
-#: Up to this many FFT levels the level loop is unrolled (measured on CPU, 256^2 RGB float32, three
-#: planes: 0.8x the time of the scan at R = 8), beyond it a scan keeps one spectrum live at a time.
-UNROLL_LEVELS = 8
-
-
-#: One FFT level costs about this many taps of the direct sum with a two-level table; a tap costs
-#: `1 + L / 5` such taps with an `L`-level table (its look-up is a chain of `L` selects). Measured
-#: on CPU, traced radius, RGB float32, direct / FFT time (256^2; 48^2 in brackets): R = 2 (21
-#: taps): 0.57 (0.88) at L = 2, 0.15-0.34 (0.30-0.50) at L = 4-16; R = 6 (137 taps): 1.04 (1.20) at
-#: L = 2, 0.44-0.65 (0.66-1.04) at L = 4-16; R = 8 (241 taps): 1.67 (1.70) at L = 2, 0.88 (1.06) at
-#: L = 8, 1.04 (1.83) at L = 16.
-FFT_LEVEL_COST_IN_TAPS = 56.0
-
-
 def direct_is_cheaper(max_radius: float, layers: int, n_conv: int) -> bool:
     """Whether the direct sum (`layers` table levels) beats `n_conv` FFT levels at `max_radius`."""
     taps = len(tap_offsets(max_radius))
-    return taps * (1 + layers / 5) < FFT_LEVEL_COST_IN_TAPS * n_conv
+    return taps * (1 + layers / 5) < _tuning.FFT_LEVEL_COST_IN_TAPS * n_conv
 
 
 def fft_length(n: int) -> int:
@@ -206,7 +193,7 @@ def layered_filter(
         return acc + jnp.fft.rfft2(layer, s=(hp, wp)) * kf_l[None]
 
     acc = jnp.zeros((c, hp, wp // 2 + 1), kf.dtype)
-    if n_conv <= UNROLL_LEVELS:  # straight-line code: XLA overlaps the levels' FFTs
+    if n_conv <= _tuning.UNROLL_LEVELS:  # straight-line code: XLA overlaps the levels' FFTs
         for j in range(n_conv):
             acc = add_level(acc, first + j, kf[j])
     else:  # one level's spectrum live at a time

@@ -32,7 +32,7 @@ class Soft(AbstractMethod):
     converge to it as `samples -> infinity`, `Layered` equals it on at most `layers` distinct
     radii, `Auto` always gives its numbers. Radii `<= 1/2` are exactly the identity (derivative 0).
 
-    Below `max_radius = 12` (`spans.SPANS_MIN_RADIUS`, the measured crossover) it is a gather over
+    Below `max_radius = 40` (`jaxdof/_tuning.py: SPANS_MIN_RADIUS`, the measured crossover) it is a gather over
     the window's offsets, one weight per mirror class (`jaxdof/_filters/soft.py`); from there on the
     same sum by row spans of fully covered pixels plus the analytic boundary pixels, whose cost grows
     linearly in the radius (`jaxdof/_filters/spans.py`). Both give the same numbers to rounding.

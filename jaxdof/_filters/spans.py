@@ -72,6 +72,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Float
 
+from .. import _tuning
 from .common import window_half_width
 from .soft import soft_filter, tap_weight
 
@@ -80,13 +81,6 @@ from .soft import soft_filter, tap_weight
 #: module docstring; `tests/test_spans.py::test_two_taps_cover_the_boundary` checks it).
 TAPS = 2
 
-#: `Soft()` (the disc) uses this path when `max_radius >= SPANS_MIN_RADIUS`, the dense
-#: gather below it. Measured crossover, `python fits/bench_speed.py --paths-only` (section "Dense
-#: gather vs row spans" of `fits/results/speed.md`; 256^2 RGB float32, CPU time, 2-core CPU shared
-#: with other jobs): at max radius 8 spans lose (0.078 s vs 0.074 s dense forward, 0.210 vs
-#: 0.153 s fwd+grad); from 12 on they win both (12: 0.093 vs 0.127 s forward, 0.233 vs 0.253 s
-#: fwd+grad; 64: 0.39 vs 2.33 s and 0.84 vs 4.23 s). An earlier run gave the same crossover.
-SPANS_MIN_RADIUS = 12.0
 
 PATHS = ("auto", "dense", "spans")
 
@@ -117,7 +111,7 @@ def exact_soft_filter(
     `path="auto"` picks spans when `max_radius >= SPANS_MIN_RADIUS`; `"dense"` and `"spans"` force
     one (the tests and benchmarks compare them). Both give the same numbers up to rounding.
     """
-    if use_spans(path, max_radius, SPANS_MIN_RADIUS):
+    if use_spans(path, max_radius, _tuning.SPANS_MIN_RADIUS):
         return spans_filter(image, radius, max_radius=max_radius)
     return soft_filter(image, radius, max_radius=max_radius)
 
@@ -259,4 +253,4 @@ def spans_layout(h: int, w: int, max_radius: float) -> tuple[int, int, int]:
     return pad, h + 2 * pad, w + 2 * pad + 1
 
 
-__all__ = ["SPANS_MIN_RADIUS", "exact_soft_filter", "spans_filter"]
+__all__ = ["exact_soft_filter", "spans_filter"]

@@ -14,7 +14,6 @@ taps share it, as in the soft filter). With `blades` the aperture is the inscrib
 
 from __future__ import annotations
 
-import math
 from typing import ClassVar, final
 
 import equinox as eqx
@@ -23,6 +22,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
+from .. import _tuning
 from .base import AbstractMethod
 from .common import check_blades, check_int, check_rotation, tap_offsets, window_half_width
 from .shape import row_extent
@@ -31,25 +31,11 @@ from .spans import crossover_for, spans_filter, use_spans
 from .taps import gather_taps
 
 
-#: `path="auto"` takes row spans (disc only) from this window radius on, looked up by `n`
-#: (`spans.crossover_for`: the first key `>= n`): the dense gather counts `n` sub-rows per mirror class, the spans
-#: only at `O(R)` boundary taps but pay scatters. Measured on the 2-core CPU (smooth depth, RGB
-#: float32, one run; spans / dense time), 256^2: n <= 4: 2.0-2.2 at R = 24; n = 8: 1.5 at 16, 0.88
-#: at 24; n = 16: 1.1 at 16, 0.67 at 24. At 48^2 the spans win earlier (n = 2-4: 0.65-0.78 at R =
-#: 24; n = 8: 0.52 at 16): the thresholds follow the larger frame.
-SUPERSAMPLE_SPANS_MIN_RADIUS = {4: 32.0, 8: 24.0, 16: 20.0, math.inf: 16.0}
-
-
 def _column_range(xl: Array, xr: Array, n: int) -> tuple[Array, Array]:
     """Integer range `[lo, hi]` of global sub-columns `m` with `xl <= (m + 1/2)/n - 1/2 <= xr`."""
     lo = jnp.ceil((xl + 0.5) * n - 0.5)
     hi = jnp.floor((xr + 0.5) * n - 0.5)
     return lo, hi
-
-
-#: Up to this many sub-rows per pixel a count's rows are written out (one fused elementwise pass);
-#: beyond, a `fori_loop` over them keeps the program small (n = 64 written out compiled ~10x slower).
-UNROLL_ROWS = 16
 
 
 def _count_rows(y0: Array, c0: Array | None, r: Array, blades, rotation: float, n: int) -> Array:
@@ -71,7 +57,7 @@ def _count_rows(y0: Array, c0: Array | None, r: Array, blades, rotation: float, 
 
     shapes = [jnp.shape(y0), r.shape] + ([] if c0 is None else [jnp.shape(c0)])
     cnt = jnp.zeros(jnp.broadcast_shapes(*shapes), r.dtype)
-    if n <= UNROLL_ROWS:
+    if n <= _tuning.UNROLL_ROWS:
         for s in sub:
             cnt = row(cnt, jnp.asarray(s, r.dtype))
         return cnt
@@ -95,7 +81,9 @@ def supersample_filter(
     count per mirror class), `"spans"` (row spans for the fully covered pixels and counts on the
     boundary taps: `spans.py`), or `"auto"`: spans from `SUPERSAMPLE_SPANS_MIN_RADIUS` on.
     """
-    spans = use_spans(path, max_radius, crossover_for(samples, SUPERSAMPLE_SPANS_MIN_RADIUS))
+    spans = use_spans(
+        path, max_radius, crossover_for(samples, _tuning.SUPERSAMPLE_SPANS_MIN_RADIUS)
+    )
     n = samples
     dtype = image.dtype
     r = lax.stop_gradient(radius)  # the counts are piecewise constant in r

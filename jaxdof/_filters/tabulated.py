@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float, Int
 
+from .. import _tuning
 from .base import AbstractMethod
 from .common import half_width, pad_rows_cols, tap_offsets, unique_with_index
 from .soft import _offset_geometry, mirror_classes, mirrored_scatter, tap_weight
@@ -32,23 +33,9 @@ def radius_levels(radius: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return unique_with_index(np.where(radius <= 0.5, 0, radius))
 
 
-# Up to this many levels each pixel's weight is picked by a chain of selects, which XLA fuses into
-# the weighting pass; beyond it by `jnp.take`, a gather. Measured at R = 2 on CPU (512^2 and 1024^2,
-# one run): the chain takes 0.45-0.7x the time of `take` for L = 3 and 8, 0.9x for L = 16.
-SELECT_MAX_LEVELS = 16
-
-
-# Up to this many taps (radius <= 2.5: a 5 x 5 window) the loop over mirror classes is written out,
-# one weighted source per class read at each of its mirrored offsets, for XLA to schedule as one
-# program: at R = 2 (three levels, RGB float32, CPU) 0.75x the scanned class loop's time, and
-# 0.6-0.7x that of every tap written out with its own look-up (256^2 and 1024^2, one run each);
-# with 37 taps or more the written-out program is slower than the loop.
-FUSED_MAX_TAPS = 25
-
-
 def _look_up(row: Array, idx: Array) -> Array:
     """`row[idx]` for a short table `row` (L,) and an index map `idx` (H, W)."""
-    if row.shape[0] > SELECT_MAX_LEVELS:
+    if row.shape[0] > _tuning.SELECT_MAX_LEVELS:
         return jnp.take(row, idx)
     out = jnp.broadcast_to(row[0], idx.shape)
     for level in range(1, row.shape[0]):
@@ -71,7 +58,7 @@ def tabulated_filter(
     rho = jnp.asarray(levels, image.dtype)
     offsets = tap_offsets(max_radius)
     idx = jnp.asarray(index, jnp.int32)
-    if len(offsets) <= FUSED_MAX_TAPS:
+    if len(offsets) <= _tuning.FUSED_MAX_TAPS:
         return _classes_written_out(image, rho, idx, offsets)
 
     def weighted(geom, image, idx):

@@ -17,9 +17,8 @@ What is here (re-exports only):
   already clamped to `max_radius`; the level helpers `unique_with_index`, `level_index`; and
   `choose_method` (also public as `jaxdof.choose_method`).
 - **Tuning**: `tuning`, the module of measured crossovers and cost constants
-  (`jaxdof/_tuning.py`, re-measured by `fits/tune.py`), and the filter modules whose own globals
-  `fits/tune.py` sets while it compiles a candidate (`filters_common`, `filters_jitter`,
-  `filters_layered`, `filters_supersample`, `filters_tabulated`).
+  (`jaxdof/_tuning.py`, re-measured by `fits/tune.py`; `tuning.override(NAME=value)` replaces
+  constants for the duration of a block, for measurements and tests).
 - **Fit helpers**: `auto_levels(shape, r_init)` (the automatic pyramid rule),
   `max_circle(lenses, depth)` (the largest circle of lenses over a depth map),
   `start_lenses(base, depth, *, free, starts, fcap=None)` (`fit_lens`'s starts),
@@ -39,13 +38,6 @@ from .. import _tuning as tuning  # noqa: F401
 from .._corrections import (
     edge_distance as edge_distance,
     kernel_variance as kernel_variance,
-)
-from .._filters import (  # noqa: F401
-    common as filters_common,
-    jitter as filters_jitter,
-    layered as filters_layered,
-    supersample as filters_supersample,
-    tabulated as filters_tabulated,
 )
 from .._filters.aperture import aperture_filter as aperture_filter
 from .._filters.auto import choose_method as choose_method
