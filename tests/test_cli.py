@@ -4,7 +4,9 @@ Each subprocess pays for importing JAX and compiling (seconds; a fit compiles fo
 so the runs are few: `demo`, one `fit` (read by two tests), two `render`s, two real bad-input
 runs (the `jaxdof` script and `python -m jaxdof`), and one subprocess that feeds the whole table
 of bad inputs to `jaxdof._cli.main`, the function both entry points call and whose return value
-is their exit status. A traceback there fails the test (it would escape `main`).
+is their exit status. A traceback there fails the test (it would escape `main`). In-process:
+the text and JSON output (`report`, on a `FitResult` built directly), what `fit` hands
+`fit_lens` (`commands.fit_call`, no solve), and one `render --focus inf`.
 """
 
 import hashlib
@@ -21,8 +23,9 @@ import numpy as np
 import pytest
 
 from jaxdof import _io
-from jaxdof._cli import main
+from jaxdof._cli import commands, main, report
 from jaxdof._cli.demo import demo_scene
+from jaxdof._cli.parse import build_parser
 from jaxdof._cli.report import Progress
 
 
@@ -58,6 +61,15 @@ def files(tmp_path_factory):
     np.save(d / "zero.npy", np.where(np.arange(W) == 3, 0.0, depth).astype(np.float32))
     np.save(d / "close.npy", np.where(np.arange(W) == 3, 0.05, depth).astype(np.float32))
     np.save(d / "pickled.npy", np.array([{"depth": 1}], dtype=object), allow_pickle=True)
+    # --weight: an RGB mask with equal channels that zeroes the left half of the photo, one whose
+    # channels differ, and negative weights
+    half = np.zeros((H, W, 3), np.uint8)
+    half[:, W // 2 :] = 255
+    iio.imwrite(d / "half.png", half)
+    iio.imwrite(
+        d / "colour_mask.png", np.stack([half[..., 0], 255 - half[..., 0], half[..., 0]], -1)
+    )
+    np.save(d / "negative.npy", -np.ones((H, W), np.float32))
     (d / "garbage.png").write_bytes(b"this is not a png")
     (d / "sharp.bmp").write_bytes((d / "sharp.png").read_bytes())
     hashes = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in d.iterdir()}
@@ -91,6 +103,23 @@ def test_help(command, capsys):
     out = capsys.readouterr().out
     assert out.startswith("usage: jaxdof")
     assert ("examples:" in out) == bool(command)
+    if command == ["fit"]:
+        assert "--weight FILE" in out and "--border {auto,off,N}" in out
+    if command in (["fit"], ["render"]):
+        assert "or inf" in out and "null" in out  # how an infinite focus is printed
+
+
+def test_focus_and_border_options_parse():
+    """`--focus inf`/`infinity` (any case) is focused at infinity, in render and fit; `--border`
+    is auto by default, off is 0, and N a width (refused lengths and borders: `BAD`)."""
+    parse = build_parser().parse_args
+    for word in ("inf", "Infinity", "+inf"):
+        assert parse([*R, *LENS[:4], "--focus", word]).focus == float("inf")
+        assert parse([*F, "--focus", word]).focus == float("inf")
+    assert parse([*R, *LENS]).focus == 3.0
+    assert parse(F).border == "auto" and parse(F).weight is None
+    assert parse([*F, "--border", "off"]).border == 0
+    assert parse([*F, "--border", "5"]).border == 5
 
 
 # ---------------------------------------------------------------------------------------------
@@ -166,14 +195,14 @@ def test_render_float_tiff_and_millimetre_png(files):
 
 @pytest.fixture(scope="module")
 def fit_run(files):
-    """One `jaxdof fit ... --json --plot fit.png` (it compiles for ~20 s of CPU): its completed
-    process and the figure's number of axes (the figure is removed again: later tests check that
-    nothing was left in the folder)."""
+    """One `jaxdof fit ... --weight half.png --json --plot fit.png` (it compiles for ~20 s of CPU;
+    a weight is data, so the unweighted fit compiles the same): its completed process and the
+    figure's number of axes (the figure is removed again: later tests check that nothing was left
+    in the folder)."""
     d, hashes, _, _ = files
     start = ["--focal-length", "85mm", "--f-number", "4", "--focus", "5m", "--sensor-width", SENSOR]
-    res = _run(
-        ["fit", "sharp.png", "depth.npy", "target.npy", *start, "--json", "--plot", "fit.png"], d
-    )
+    argv = ["fit", "sharp.png", "depth.npy", "target.npy", *start, "--weight", "half.png"]
+    res = _run([*argv, "--json", "--plot", "fit.png"], d)
     figure = d / "fit.png"
     ndim = iio.imread(figure).ndim if figure.exists() else None
     figure.unlink(missing_ok=True)
@@ -195,6 +224,14 @@ def test_fit_json_and_plot(fit_run):
     assert len(obj["lenses"]) == 1 and obj["lenses"][0]["focus_distance"] == obj["focus_distance"]
     assert "loss" in res.stderr  # progress goes to stderr
     assert figure_ndim == 3
+    # --weight half.png zeroes the left half: the fit uses at most the right half, less the band
+    assert 0 < obj["pixels_used"] <= H * (W // 2) - obj["border"] * (W // 2)
+    assert obj["border"] > 0  # --border auto
+    # FitResult.to_dict()'s keys
+    assert obj["status"] == "successful" and obj["names"] == ["f_number", "focus_distance"]
+    assert len(obj["covariance"]) == 2 and obj["gain"] == [1.0] and obj["offset"] == [0.0]
+    assert obj["focus_power"] == pytest.approx(1 / 3.0, rel=1e-3) and obj["levels"] >= 1
+    assert obj["sigma"] >= 0 and obj["condition"] >= 1 and obj["max_radius"] > 0
 
 
 _STEP = re.compile(r"^\s*solve (\d+) start (\d+)\s+step\s+(\d+)\s+loss (\S+)$")
@@ -282,53 +319,133 @@ def test_fit_downsample_option(tmp_path):
     np.save(tmp_path / "photo.npy", np.asarray(jaxdof.render(image, depth, lens, downsample=2)))
     start = ["--focal-length", "85mm", "--f-number", "2", "--focus", "3.6m", "--sensor-width"]
     argv = ["fit", "sharp.npy", "depth.npy", "photo.npy", *start, SENSOR, "--downsample", "2"]
-    res = _run([*argv, "--json", "--quiet", "--plot", "fit.png"], tmp_path)
+    res = _run([*argv, "--border", "off", "--json", "--quiet", "--plot", "fit.png"], tmp_path)
     assert res.returncode == 0, res.stderr
     obj = json.loads(res.stdout)
     assert obj["success"] is True
+    assert obj["border"] == 0 and obj["pixels_used"] == H * W  # --border off: every photo pixel
     assert obj["pixel_pitch"] == pytest.approx(0.012 / W)  # the photo's pitch
     for name, value in TRUTH.items():
         assert obj[name] == pytest.approx(value, rel=1e-3), name
     assert iio.imread(tmp_path / "fit.png").ndim == 3  # the figure at the photo's pixels
 
 
-def test_fit_several_targets_output(files, monkeypatch, capsys):
-    """The text and JSON layout for several targets (in-process, with the solver stubbed out:
-    the fit itself is covered above and by examples/focus_bracket.py; this checks the CLI's
-    reading of a `FitResult` with one lens per target)."""
+def test_fit_arguments(files, monkeypatch):
+    """What `fit` hands `jaxdof.fit_lens` (`commands.fit_call`, in-process, no solve): the
+    TARGETs stacked to `(T, H, W, 3)`, the options, the `--weight` file (an RGB mask with equal
+    channels: one channel, 8-bit 0/255 as 0/1), `--border`, and a start focused at infinity."""
+    d, hashes, _, _ = files
+    monkeypatch.chdir(d)
+    parse = build_parser().parse_args
+    start = ["--focal-length", "85mm", "--sensor-width", SENSOR, "--shared", "f_number"]
+    call = commands.fit_call(
+        parse(["fit", "sharp.png", "depth.npy", "near.npy", "far.npy", *start])
+    )
+    image, depth, targets, init = call.positional
+    assert image.shape == (H, W, 3) and depth.shape == (H, W)
+    assert targets.shape == (2, H, W, 3) and len(call.targets) == 2
+    k = call.kwargs
+    assert k["shared"] == ("f_number",) and k["free"] == ("focus_distance", "f_number")
+    assert k["method"] == "soft" and k["border"] == "auto" and k["weight"] is None
+    assert float(init.focus_distance) == pytest.approx(float(np.median(depth)))
+    extra = ["--weight", "half.png", "--border", "off", "--focus", "inf", "--quiet"]
+    call = commands.fit_call(parse([*F, *extra]))
+    weight = call.kwargs["weight"]
+    assert call.positional[2].shape == (H, W, 3)  # one TARGET: as it is
+    assert weight.shape == (H, W) and set(np.unique(weight)) == {0.0, 1.0}
+    assert weight[:, : W // 2].max() == 0 and weight[:, W // 2 :].min() == 1
+    assert call.kwargs["border"] == 0 and call.kwargs["verbose"] is False
+    assert float(call.init.focus_distance) == float("inf")
+    _unchanged(d, hashes)
+
+
+def _fit_result(focus, *, success=True):
+    """A `jaxdof.FitResult` of `len(focus)` targets, built directly (the fit itself is tested
+    above and in tests/test_fit.py): f/1.4 shared, the focus distance per target."""
     import jax.numpy as jnp
 
     import jaxdof
 
-    d, hashes, _, _ = files
+    n = len(focus)
     lenses = jaxdof.ThinLens(
-        jnp.array([0.085, 0.085]), jnp.array([1.4, 1.4]), jnp.array([2.0, 4.5]), 0.012 / W
+        jnp.full(n, 0.085), jnp.full(n, 1.4), jnp.array(focus), jnp.full(n, 0.012 / W)
     )
-    stderr = {"f_number": jnp.array([0.01, 0.01]), "focus_distance": jnp.array([0.02, 0.03])}
-    # Only the attributes of a FitResult that the CLI reads.
-    fake = types.SimpleNamespace(
+    se = jnp.array([0.02, 0.03][:n])
+    names = ("f_number", *(f"focus_distance[{t}]" for t in range(n)))
+    return jaxdof.FitResult(
         lenses=lenses,
-        stderr=stderr,
+        stderr={"f_number": jnp.full(n, 0.01), "focus_distance": se},
+        covariance=jnp.eye(n + 1) * 1e-4,
+        gain=jnp.ones(n),
+        offset=jnp.zeros(n),
         loss=jnp.array(0.5),
+        sigma=jnp.array(0.01),
         num_steps=jnp.array(7),
-        success=jnp.array(True),
-        message="converged",
+        condition=jnp.array(3.0),
+        status=jaxdof.RESULTS.successful if success else jaxdof.RESULTS.max_steps,
+        success=jnp.array(success),
+        focus_power_stderr=jnp.full(n, 0.002),
+        pixels_used=jnp.array(1000),
+        names=names,
+        max_radius=4.0,
+        border=3,
+        levels=1,
     )
-    calls = []
-    monkeypatch.setattr(jaxdof, "fit_lens", lambda *a, **k: calls.append((a, k)) or fake)
-    monkeypatch.chdir(d)
-    start = ["--focal-length", "85mm", "--sensor-width", SENSOR, "--shared", "f_number"]
-    assert main(["fit", "sharp.png", "depth.npy", "near.npy", "far.npy", *start, "--json"]) == 0
-    (image, depth, targets, init), kwargs = calls[0]
-    assert targets.shape == (2, H, W, 3) and kwargs["shared"] == ("f_number",)
-    assert kwargs["method"] == "soft"  # the default of --method
+
+
+def test_fit_several_targets_output(capsys):
+    """The text and JSON layout for several targets (`report.fit_summary` and `print_fit`, on a
+    `FitResult` with one lens per target; `fit`'s arguments: `test_fit_arguments`)."""
+    summary = report.fit_summary(_fit_result([2.0, 4.5]))
+    free = ["focus_distance", "f_number"]
+    report.print_fit(summary, ["near.npy", "far.npy"], free, as_json=True)
     obj = json.loads(capsys.readouterr().out)
     assert [x["focus_distance"] for x in obj["lenses"]] == [2.0, 4.5]
     assert [x["stderr"]["focus_distance"] for x in obj["lenses"]] == [0.02, 0.03]
+    assert [x["focus_power"] for x in obj["lenses"]] == [0.5, pytest.approx(1 / 4.5)]
     assert obj["focus_distance"] == 2.0 and obj["steps"] == 7 and obj["success"] is True
-    assert main(["fit", "sharp.png", "depth.npy", "near.npy", "far.npy", *start, "--quiet"]) == 0
+    assert obj["status"] == "successful" and obj["pixels_used"] == 1000 and obj["border"] == 3
+    assert obj["names"] == ["f_number", "focus_distance[0]", "focus_distance[1]"]
+    assert obj["sigma"] == 0.01 and obj["levels"] == 1 and obj["gain"] == [1.0, 1.0]
+    report.print_fit(summary, ["near.npy", "far.npy"], free, as_json=False, pixels=2 * H * W)
     text = capsys.readouterr().out
     assert "target far.npy:" in text and "4.5 m ± 0.03" in text and "converged" in text
+    assert f"pixels used 1000 of {2 * H * W} (border 3 px)" in text
+    assert "standard errors" not in text  # the result does not say what kind
+
+
+def test_fit_output_focus_at_infinity(capsys):
+    """A focus distance at infinity is `null` in JSON (SI numbers only) and `inf` in text; a
+    failed fit's text names its status; the kind of standard errors shows when known."""
+    summary = report.fit_summary(_fit_result([float("inf")], success=False))
+    report.print_fit(summary, ["far.npy"], ["f_number"], as_json=True)
+    out = capsys.readouterr().out
+    assert "Infinity" not in out  # valid JSON
+    obj = json.loads(out)
+    assert obj["focus_distance"] is None and obj["lenses"][0]["focus_distance"] is None
+    assert obj["focus_power"] == 0.0 and obj["success"] is False and obj["status"] == "max_steps"
+    report.print_fit(summary, ["far.npy"], ["f_number"], as_json=False)
+    text = capsys.readouterr().out
+    assert "recovered lens:" in text and "inf m" in text and "(held)" in text
+    assert "pixels used 1000 (border 3 px)" in text and "did NOT converge (max_steps)" in text
+    kinds = types.SimpleNamespace(stderr_kind="sandwich")
+    assert report.stderr_kind(kinds) == "sandwich" and report.stderr_kind(object()) is None
+    adequacy = {"adequate": np.array(False), "inflation": np.array(2.5)}
+    assert "x2.5" in str(report.stderr_kind(types.SimpleNamespace(adequacy=adequacy)))
+    report.print_fit({**summary, "stderr_kind": "sandwich"}, ["far.npy"], [], as_json=False)
+    assert "standard errors: sandwich" in capsys.readouterr().out
+
+
+def test_render_focus_at_infinity(files, tmp_path):
+    """`render --focus inf` (in-process): the library's render of a lens focused at infinity."""
+    d, hashes, linear, depth = files
+    import jaxdof
+
+    out = tmp_path / "inf.npy"
+    lens = [*LENS[:4], "--focus", "inf", "--sensor-width", SENSOR]
+    assert main(["render", str(d / "sharp.png"), str(d / "depth.npy"), "-o", str(out), *lens]) == 0
+    expect = np.asarray(jaxdof.render(linear, depth, _lens(jaxdof, focus=float("inf"))))
+    np.testing.assert_allclose(np.load(out), expect, rtol=1e-5, atol=1e-6)
     _unchanged(d, hashes)
 
 
@@ -399,6 +516,8 @@ BAD = [  # (argv, text the one line must contain)
     ),
     ([*R, *LENS[:4], "--focus", "3km"], "argument --focus: bad length '3km'"),
     ([*R, *LENS[:4], "--focus=-3m"], "argument --focus: bad length '-3m'"),
+    ([*R, "--focal-length", "inf", *LENS[2:]], "argument --focal-length: bad length 'inf'"),
+    ([*R, *LENS[:-2], "--sensor-width", "infinity"], "argument --sensor-width: bad length"),
     ([*R, *LENS[:4], "--focus", "5cm"], "focus_distance must exceed focal_length"),
     ([*F, "--focus", "5cm"], "focus_distance must exceed focal_length"),
     ([*R, "--focal-length", "85", *LENS[2:]], "argument --focal-length: bare number '85'"),
@@ -419,6 +538,13 @@ BAD = [  # (argv, text the one line must contain)
     ([*F, "--method", "hard"], "cannot drive a fit"),
     ([*F, "--plot", "fit.jpg"], "--plot fit.jpg: the figure is written as PNG"),
     ([*F, "--plot", "target.npy"], "--plot target.npy: is also an input"),
+    ([*F, "--plot", "half.png", "--weight", "half.png"], "--plot half.png: is also an input"),
+    ([*F, "--weight", "small.npy"], "small.npy: weight is 23x32 (HxW) but the photo (TARGET)"),
+    ([*F, "--weight", "colour_mask.png"], "colour_mask.png: weight has 3 different channels"),
+    ([*F, "--weight", "negative.npy"], "negative.npy: weights must be >= 0"),
+    ([*F, "--weight", "missing.png"], "missing.png: no such file (--weight)"),
+    ([*F, "--border", "-1"], "argument --border: bad border '-1'"),
+    ([*F, "--border", "wide"], "argument --border: bad border 'wide'"),
     (["demo", "--out", "demo.jpg"], "--out demo.jpg"),
     (["render"], "the following arguments are required"),
     (["unknown"], "invalid choice: 'unknown'"),

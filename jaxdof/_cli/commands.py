@@ -10,7 +10,9 @@ Each command returns the exit status.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import time
+from typing import Any
 
 import numpy as np
 
@@ -142,34 +144,96 @@ def _check_free(free, shared, n_targets: int) -> None:
         )
 
 
-def run_fit(args) -> int:
-    inputs = [args.image, args.depth, *args.targets]
+def _read_weight(path: str, photo: tuple[int, ...]) -> np.ndarray:
+    """`--weight`: one weight per photo pixel, `(H, W)`, the same for every target.
+
+    Read as data, not light: integer files scale to `[0, 1]` without sRGB decoding (a 0/255
+    mask is 0/1), float files are as they are. An RGB file is taken when its channels agree (a
+    mask saved in colour): one of them.
+    """
+    w = read_image(path, linear=True, option="--weight").array
+    if w.ndim == 3:
+        if not np.all(w == w[..., :1]):
+            raise InputError(
+                f"{path}: weight has {w.shape[-1]} different channels; give one weight per pixel "
+                "(grayscale, or a mask whose channels are equal) (--weight)"
+            )
+        w = w[..., 0]
+    if w.shape != tuple(photo[:2]):
+        raise InputError(
+            f"{path}: weight is {w.shape[0]}x{w.shape[1]} (HxW) but the photo (TARGET) is "
+            f"{photo[0]}x{photo[1]}; it must match (--weight)"
+        )
+    if np.any(w < 0):
+        raise InputError(f"{path}: weights must be >= 0 (0 leaves a pixel out) (--weight)")
+    return w
+
+
+@dataclasses.dataclass
+class FitCall:
+    """What `run_fit` hands `jaxdof.fit_lens`: `fit_lens(*positional, **kwargs)`, from the files
+    and options, checked; `image`, `depth`, `targets` (one array per TARGET) and `model` for the figure."""
+
+    image: np.ndarray
+    depth: np.ndarray
+    targets: list[np.ndarray]
+    init: jaxdof.ThinLens
+    kwargs: dict[str, Any]
+    model: dict[str, Any]
+
+    @property
+    def positional(self) -> tuple:
+        targets = self.targets[0] if len(self.targets) == 1 else np.stack(self.targets)
+        return (self.image, self.depth, targets, self.init)
+
+
+def _fit_inputs(args) -> list[str]:
+    """`fit`'s input files, which no output may overwrite."""
+    return [args.image, args.depth, *args.targets, *([args.weight] if args.weight else [])]
+
+
+def fit_call(args) -> FitCall:
+    """Read and check `fit`'s files and options into the arguments of `jaxdof.fit_lens` (no
+    solve: what the library checks of the values, it checks when called)."""
     img, depth = _read_inputs(args)
     width = _photo_width(args, img.array.shape)
     targets = _read_targets(args, img.array.shape, width)
+    weight = None if args.weight is None else _read_weight(args.weight, targets[0].shape)
     _check_free(args.free, args.shared, len(targets))
-    plot.check_plot(args.plot, inputs, "--plot")
+    plot.check_plot(args.plot, _fit_inputs(args), "--plot")
     focus = args.focus if args.focus is not None else float(np.median(depth))
     init = _lens(args, focus, width)
     model = dict(method=args.method, footprint=args.footprint, downsample=args.downsample)
+    kwargs = dict(
+        free=tuple(args.free),
+        shared=tuple(args.shared),
+        max_steps=args.max_steps,
+        max_radius=args.max_radius,
+        weight=weight,
+        border=args.border,
+        verbose=False if args.quiet else report.Progress(),
+        **model,
+    )
+    return FitCall(img.array, depth, targets, init, kwargs, model)
+
+
+def run_fit(args) -> int:
+    call = fit_call(args)
     with library_checks():  # e.g. --shared not within --free, or the data cannot decide the lens
-        result = jaxdof.fit_lens(
-            img.array,
-            depth,
-            targets[0] if len(targets) == 1 else np.stack(targets),
-            init,
-            free=tuple(args.free),
-            shared=tuple(args.shared),
-            max_steps=args.max_steps,
-            max_radius=args.max_radius,
-            verbose=False if args.quiet else report.Progress(),
-            **model,
-        )
-    summary = report.fit_summary(result, len(targets))
-    report.print_fit(summary, args.targets, args.free, as_json=args.json)
+        result = jaxdof.fit_lens(*call.positional, **call.kwargs)
+    summary = report.fit_summary(result)
+    pixels = len(call.targets) * int(np.prod(call.targets[0].shape[:2]))
+    report.print_fit(summary, args.targets, args.free, as_json=args.json, pixels=pixels)
     if args.plot:
         plot.plot_fit(
-            args.plot, img.array, depth, targets, result, args.targets, inputs, render_options=model
+            args.plot,
+            call.image,
+            call.depth,
+            call.targets,
+            result,
+            args.targets,
+            _fit_inputs(args),
+            render_options=call.model,
         )
         note(f"wrote {args.plot}")
     return 0 if summary["success"] else 1

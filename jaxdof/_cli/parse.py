@@ -65,6 +65,35 @@ def parse_length(text: str) -> float:
     return _length(text)[0]
 
 
+_INFINITY = ("inf", "+inf", "infinity", "+infinity")
+
+
+def parse_focus(text: str) -> float:
+    """As `parse_length`, and `inf` or `infinity` (any case): focused at infinity (`math.inf`).
+
+    Only the focus distance may be infinite; every other length stays finite.
+    """
+    if text.strip().lower() in _INFINITY:
+        return math.inf
+    return parse_length(text)
+
+
+def parse_border(text: str) -> str | int:
+    """`fit --border`: `auto` (the window's band), `off` (0: keep every pixel) or a width >= 0."""
+    word = text.strip().lower()
+    if word in ("auto", "off"):
+        return "auto" if word == "auto" else 0
+    try:
+        value = int(word)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(
+            f"bad border {text!r}: give auto, off or a width in photo pixels (an integer >= 0)"
+        )
+    return value
+
+
 def parse_focal_length(text: str) -> float:
     """As `parse_length`, but a bare number of 1 or more (`50`) is refused: it is surely mm."""
     value, unit = _length(text)
@@ -104,7 +133,9 @@ def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
     what = "starting " if start else ""
     g = p.add_argument_group(
         "lens" + (" (the starting point of the fit)" if start else ""),
-        "Lengths take a unit: mm, cm or m (a bare number is metres; --focal-length 50 is refused).",
+        "Lengths take a unit: mm, cm or m (a bare number is metres; --focal-length 50 is refused).\n"
+        "--focus also takes inf (or infinity): focused at infinity, printed as inf in text and\n"
+        "as null in --json.",
     )
     g.add_argument(
         "--focal-length",
@@ -123,11 +154,11 @@ def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
     )
     g.add_argument(
         "--focus",
-        type=parse_length,
+        type=parse_focus,
         required=not start,
         default=None,
         metavar="LEN",
-        help=f"{what}focus distance, e.g. 3m"
+        help=f"{what}focus distance, e.g. 3m, or inf"
         + (" (default: the median depth of the scene)" if start else ""),
     )
     g.add_argument(
@@ -225,6 +256,8 @@ examples:
   jaxdof fit sharp.png depth.tif a.png b.png c.png --focal-length 50mm \\
       --free focal_length f_number focus_distance --shared focal_length f_number --json
   jaxdof fit sharp.tif depth.npy photo.tif --focal-length 85mm --plot fit.png
+  jaxdof fit sharp.png depth.tif photo.png --focal-length 24mm --focus inf \
+      --weight mask.png --border off --json
 
 From one photo only the blur scale K = f^2/(2N(d_f - f))/pitch and the focus distance can be
 measured, so by default --free is f_number focus_distance with the focal length held; a focus
@@ -314,7 +347,28 @@ def _add_fit(sub) -> None:
         metavar="PX",
         help="filter window in pixels (default: chosen by the fit)",
     )
-    fit.add_argument("--json", action="store_true", help="print one JSON object on stdout")
+    fit.add_argument(
+        "--weight",
+        metavar="FILE",
+        help="per-pixel weights >= 0 (an inverse variance) or a 0/1 mask, (H, W) at the photo's "
+        "pixels (the TARGETs'), the same for every TARGET: grayscale, or RGB with equal channels "
+        "(one is taken); integer files scale to [0, 1] (no sRGB decoding), float files are as "
+        "they are; 0 leaves a pixel out of the fit",
+    )
+    fit.add_argument(
+        "--border",
+        type=parse_border,
+        default="auto",
+        metavar="{auto,off,N}",
+        help="the band along the photo's edges left out of the fit, where light from outside the "
+        "frame lands: auto (default: the filter window's reach), off (keep every pixel) or N "
+        "photo pixels",
+    )
+    fit.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object on stdout (SI units; an infinite focus distance is null)",
+    )
     fit.add_argument("--plot", metavar="PNG", help="write a comparison figure (needs matplotlib)")
     fit.add_argument("--quiet", action="store_true", help="no progress on stderr")
     _add_lens_options(fit, start=True)

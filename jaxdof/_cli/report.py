@@ -20,17 +20,6 @@ def note(msg: str) -> None:
 # A fit's result
 
 
-def _lens_dict(lens, index: int) -> dict:
-    def value(name):
-        v = np.asarray(getattr(lens, name))
-        v = v if v.ndim == 0 else v.reshape(-1)[index]
-        # The shortest decimal that round-trips the array's own precision (0.085, not
-        # 0.08500000089406967 for a float32 value).
-        return float(str(v.item() if v.dtype == np.float64 else np.float32(v)))
-
-    return {name: value(name) for name in (*FIELDS, "pixel_pitch")}
-
-
 def _stderr_dict(stderr: dict, index: int | None) -> dict:
     out = {}
     for name, v in stderr.items():
@@ -40,30 +29,46 @@ def _stderr_dict(stderr: dict, index: int | None) -> dict:
     return out
 
 
-def fit_summary(result, n_targets: int) -> dict:
-    """The `fit --json` object of a `FitResult` with `n_targets` photos; the text output reads it too.
+def stderr_kind(result) -> str | None:
+    """What the standard errors are, in words, when the `FitResult` says (`stderr_kind`, or the
+    model-adequacy test's verdict in `adequacy`); `None` when it does not."""
+    kind = getattr(result, "stderr_kind", None)
+    if kind is not None:
+        return str(getattr(kind, "name", kind))
+    test = getattr(result, "adequacy", None)
+    if isinstance(test, dict) and "adequate" in test:
+        if bool(np.all(np.asarray(test["adequate"]))):
+            return "from the pixel noise (the model explains every tile)"
+        inflation = float(np.max(np.asarray(test.get("inflation", np.nan))))
+        return (
+            f"inflated x{inflation:.3g} to the tile spread (the model does not explain every tile)"
+        )
+    return None
 
-    Lens 0's fields and `stderr` at the top level (a single photo's fit reads as one lens), then
-    `success`, `message`, `steps`, `loss`, and `lenses` with one entry (fields and `stderr`) per
-    photo. SI units; a standard error the data cannot determine is `null`.
+
+def fit_summary(result) -> dict:
+    """The `fit --json` object of a `FitResult`; the text output reads it too.
+
+    `FitResult.to_dict()`: lens 0's fields, `stderr`, `focus_power` and `focus_power_stderr` at
+    the top level (a single photo's fit reads as one lens), then `success`, `status`, `message`,
+    `steps`, `loss`, `sigma`, `condition`, `max_radius`, `pixels_used`, `border`, `levels`,
+    `names`, `covariance`, `gain`, `offset`, and `lenses` with one entry per photo; plus
+    `stderr_kind` when the result says what its standard errors are. SI units; a value that is
+    not finite (a standard error the data cannot determine, a focus distance at infinity) is
+    `null`.
     """
-    # TODO(lead): build from FitResult.to_dict()
-    n = n_targets
-    lenses = [_lens_dict(result.lenses, i) for i in range(n)]
-    errors = [_stderr_dict(result.stderr, i if n > 1 else None) for i in range(n)]
-    return {
-        **lenses[0],
-        "stderr": errors[0],
-        "success": bool(result.success),
-        "message": str(result.message),
-        "steps": int(result.num_steps),
-        "loss": float(result.loss),
-        "lenses": [{**lens, "stderr": err} for lens, err in zip(lenses, errors)],
-    }
+    summary = result.to_dict()
+    kind = stderr_kind(result)
+    if kind is not None and "stderr_kind" not in summary:
+        summary["stderr_kind"] = kind
+    return summary
 
 
 def format_value(name: str, v, err=None) -> str:
-    """`v` (SI) in the unit a photographer reads (mm, m), with `± err` when it is known."""
+    """`v` (SI) in the unit a photographer reads (mm, m), with `± err` when it is known.
+
+    `None` is a value JSON cannot hold, infinity (a focus distance at infinity): `inf`."""
+    v = np.inf if v is None else v
     if name in ("focal_length", "focus_distance", "pixel_pitch"):
         scale, unit = (1e3, "mm") if name != "focus_distance" else (1.0, "m")
         s = f"{v * scale:.5g} {unit}"
@@ -71,8 +76,12 @@ def format_value(name: str, v, err=None) -> str:
     return f"{v:.5g}" + (f" ± {err:.2g}" if err is not None else "")
 
 
-def print_fit(summary: dict, target_names: list[str], free, *, as_json: bool) -> None:
-    """A `fit_summary` on stdout: one JSON object, or a block per lens and a verdict line."""
+def print_fit(
+    summary: dict, target_names: list[str], free, *, as_json: bool, pixels: int | None = None
+) -> None:
+    """A `fit_summary` on stdout: one JSON object, or a block per lens, the pixels fitted (of
+    `pixels`, the photos' total, when given), what the standard errors are, and a verdict line
+    (with the status's name when the fit failed)."""
     if as_json:
         print(json.dumps(summary, indent=2))
         return
@@ -83,9 +92,15 @@ def print_fit(summary: dict, target_names: list[str], free, *, as_json: bool) ->
             state = "" if name in free else "  (held)"
             value = format_value(name, lens[name], lens["stderr"].get(name))
             print(f"  {name:15s} {value}{state}")
-    verdict = "converged" if summary["success"] else "did NOT converge"
+    of = f" of {pixels}" if pixels is not None else ""
+    print(f"pixels used {summary['pixels_used']}{of} (border {summary['border']} px)")
+    if summary.get("stderr_kind") is not None:
+        print(f"standard errors: {summary['stderr_kind']}")
+    verdict = "converged" if summary["success"] else f"did NOT converge ({summary['status']})"
+    loss = summary["loss"]
     print(
-        f"{verdict} after {summary['steps']} steps, loss {summary['loss']:.4g}: {summary['message']}"
+        f"{verdict} after {summary['steps']} steps, "
+        f"loss {'nan' if loss is None else format(loss, '.4g')}: {summary['message']}"
     )
 
 
