@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
 from ._custom_types import AnyFloat, AnyFloatLike
@@ -23,7 +24,7 @@ def _as_float(x: ArrayLike) -> Array:
 
 
 def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
+    return not isinstance(x, Tracer)
 
 
 class ThinLens(eqx.Module):
@@ -328,5 +329,5 @@ def linearize_depth(zbuf: AnyFloatLike, near: AnyFloatLike, far: AnyFloatLike) -
     so `z = 0` gives `near` and `z = 1` gives `far` (Yu, "Depth of field implementation with
     OpenGL"). Units of `near`, `far` are those of the result.
     """
-    z = _as_float(zbuf)
+    z, near, far = _as_float(zbuf), jnp.asarray(near), jnp.asarray(far)
     return near * far / (far - z * (far - near))

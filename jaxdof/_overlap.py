@@ -21,6 +21,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+from jax.core import Tracer
 from jaxtyping import Array
 
 from ._custom_types import AnyFloat, AnyFloatLike
@@ -192,6 +193,6 @@ def circle_pixel_overlap(dx: AnyFloatLike, dy: AnyFloatLike, r: AnyFloatLike) ->
     dx, dy, r = jnp.broadcast_arrays(*(jnp.asarray(v) for v in (dx, dy, r)))
     dtype = jnp.result_type(dx, dy, r, float)
     dx, dy, r = (v.astype(dtype) for v in (dx, dy, r))
-    if not isinstance(r, jax.core.Tracer) and bool(jnp.any(r < 0)):
+    if not isinstance(r, Tracer) and bool(jnp.any(r < 0)):
         raise ValueError("circle_pixel_overlap: the radius r must be >= 0 (pixels)")
     return _overlap(dx, dy, r)

@@ -88,7 +88,7 @@ def coc_filter(
     static_radius = np.asarray(radius) if is_concrete(radius) else None
     image, radius, was_2d = check_image_and_radius(image, radius)
     if depth is not None:
-        depth = check_depth_map(depth, image.shape[:2])
+        depth = check_depth_map(depth, (image.shape[0], image.shape[1]))
     max_radius = check_max_radius(max_radius, radius)
     if static_radius is None:
         # A NaN radius (possible under jit with EQX_ON_ERROR=nan or off) must not pass for a

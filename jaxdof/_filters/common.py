@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 from jaxtyping import Array, ArrayLike
 
 from .. import _tuning
@@ -16,7 +17,7 @@ from .. import _tuning
 
 def is_concrete(*xs) -> bool:
     """True when no argument is a tracer, i.e. its values can be inspected in Python."""
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
+    return not any(isinstance(x, Tracer) for x in jax.tree_util.tree_leaves(xs))
 
 
 def window_half_width(max_radius: float) -> int:
@@ -35,7 +36,7 @@ def half_width(offsets: np.ndarray) -> int:
 
 def pad_rows_cols(x: ArrayLike, pad: int) -> Array:
     """`x` (rows and columns leading, any trailing axes) with a zero border of `pad` pixels."""
-    return jnp.pad(x, ((pad, pad), (pad, pad)) + ((0, 0),) * (x.ndim - 2))
+    return jnp.pad(x, ((pad, pad), (pad, pad)) + ((0, 0),) * (jnp.ndim(x) - 2))
 
 
 def tap_offsets(max_radius: float) -> np.ndarray:

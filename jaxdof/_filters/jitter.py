@@ -105,7 +105,7 @@ def jitter_filter(
     r = lax.stop_gradient(radius)
     small = r <= 0.5
     inv_area = jnp.where(small, 0, 1 / (math.pi * jnp.where(small, 1, r) ** 2 * samples))
-    pad, _, _ = spans_layout(*r.shape, max_radius)
+    pad, _, _ = spans_layout(r.shape[0], r.shape[1], max_radius)
     # spans: every offset the boundary taps reach (a square of half-width `pad`); dense: the window
     offsets = _square(pad) if spans else tap_offsets(max_radius)
     # A concrete key (the usual case, also when closed over under jit) makes the thresholds and the

@@ -133,6 +133,7 @@ def occlusion_filter(
     layer = depth_layers(depth, layers, jump)
     masks, colours, radii = _layer_sources(image, radius, layer, layers, fill)
     if fill:
+        assert colours is not None and radii is not None  # what `fill` makes
         stacked = jnp.concatenate([colours * masks[..., None], masks[..., None]], axis=-1)
         blurred = jax.vmap(lambda x, r: soft_filter(x, r, max_radius=max_radius))(stacked, radii)
     else:

@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jax.core import ShapedArray
 from jax.interpreters import ad
 from jaxtyping import Array, Float
 
@@ -242,6 +243,7 @@ def _shift_sum(padded, mirrors, k: int, pad: int, sign: int, shape) -> Array:
         at = (pad + sign * mirrors[j, 0], pad + sign * mirrors[j, 1], zero)
         piece = lax.dynamic_slice(padded, at, shape)
         total = piece if total is None else total + piece
+    assert total is not None, "a mirror class has at least one offset"
     return total
 
 
@@ -293,7 +295,7 @@ def _tangent(image, radius, d_image, d_radius, *, max_radius: float) -> Array:
     """`T(dI, dr)`: one pass per canonical offset computing `w` and `w'` together."""
 
     def source(geom, image, radius, d_image, d_radius):
-        w, dw = _weight_and_slope(*geom, radius, with_slope=True)
+        w, dw = _weight_and_slope(*geom, radius, with_slope=True)  # pyright: ignore[reportCallIssue]
         return d_image * w[..., None] + image * (dw * d_radius)[..., None]
 
     inputs = (image, radius, d_image, d_radius)
@@ -313,7 +315,7 @@ def _adjoint(image, radius, cotangent, *, max_radius: float) -> tuple[Array, Arr
 
     def body(k, acc, mirrors, geom):
         d_image, d_slope = acc
-        w, dw = _weight_and_slope(*geom, radius, with_slope=True)
+        w, dw = _weight_and_slope(*geom, radius, with_slope=True)  # pyright: ignore[reportCallIssue]
         g = _shift_sum(padded, mirrors, k, pad, +1, image.shape)
         return d_image + g * w[..., None], d_slope + g * dw[..., None]
 
@@ -327,7 +329,7 @@ def _tangent_impl(image, radius, d_image, d_radius, *, max_radius):
 
 
 def _tangent_abstract_eval(image, radius, d_image, d_radius, *, max_radius):
-    return [jax.core.ShapedArray(image.shape, image.dtype)]
+    return [ShapedArray(image.shape, image.dtype)]
 
 
 def _materialise(tangent, primal):

@@ -210,13 +210,13 @@ def spans_filter(
         for t in range(TAPS):
             j = j0 + t
             ji = j.astype(jnp.int32)
-            side = None if partial else image * weight(j, mm)[..., None]
+            side = None if partial else image * weight(j, mm)[..., None]  # pyright: ignore
             centre = jnp.where(ji == 0, skip, 0)  # (0, 0) is on the right side only
             for sy, row in ((1, base + m * wp), (-1, base - m * wp + twin)):
                 taps += [(row + ji, sy * mm, j, side), (row - ji + centre, sy * mm, -j, side)]
             k = k0 + t
             ki = k.astype(jnp.int32) * wp
-            cap = None if partial else image * weight(mm, k)[..., None]
+            cap = None if partial else image * weight(mm, k)[..., None]  # pyright: ignore
             for sx, col in ((1, base + m), (-1, base - m + twin)):  # column -0 is column +0
                 taps += [(col + ki, k, sx * mm, cap), (col - ki, -k, sx * mm, cap)]
         if partial is None:  # the soft weight is shared by the mirrored pixels

@@ -63,6 +63,7 @@ def tabulated_filter(
 
     def weighted(geom, image, idx):
         row = tap_weight(*geom, rho)  # this offset's weight at each of the L levels
+        assert isinstance(row, Array)  # without `with_arc`, one array
         return image * _look_up(row, idx)[..., None]
 
     return mirrored_scatter(weighted, offsets, image.shape, image.dtype, (image, idx))
@@ -85,6 +86,7 @@ def _classes_written_out(image, rho, idx, offsets: np.ndarray) -> Array:
         geometry = _offset_geometry(canonical, image.dtype)
         for n, images in enumerate(mirrors):
             row = tap_weight(*(g[n] for g in geometry), rho)
+            assert isinstance(row, Array)  # without `with_arc`, one array
             source = pimg * _look_up(row, pidx)[None]
             for oy, ox in images:
                 out = out + source[:, pad - oy : pad - oy + h, pad - ox : pad - ox + w]
