@@ -36,7 +36,14 @@ def render(
       of `jaxdof.AbstractMethod` of your own) or a built-in's name, as in `coc_filter`. A method
       that reads depth (`method.uses_depth`: `jaxdof.Occlusion`, opt-in) gets `depth` from
       `render` itself.
-    - `normalize`: as in `coc_filter`.
+    - `normalize`: as in `coc_filter`: divide by the same render of an image of ones, so that the
+      pixels within a circle of the frame's edge, whose light partly leaves the frame, keep
+      their brightness. Which border treatment when: `normalize=True` for a picture whose
+      edges should look right. For fitting a lens to a real photo, neither the default (those
+      pixels lack the light that reaches them from scene points outside the frame: zeros in
+      its place) nor the renormalisation (the light inside the frame, rescaled) is that
+      light, so leave the band out of the comparison instead: `jaxdof.fit_lens` does by
+      default (`border="auto"`: the `ceil(max_radius)` photo pixels along every edge).
     - `footprint`: opt-in pixel-footprint correction (default off): spread
       `footprint_prefilter(image, r)` instead of `image`, so that the blur of every pixel has the
       lens's variance `r^2 / 4`, also for circles under half a pixel, where the plain filter copies

@@ -9,6 +9,7 @@ import json
 import pathlib
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,7 +19,15 @@ from jax.test_util import check_grads
 import jaxdof
 import jaxdof._fit.solve as fit_solve
 from jaxdof import RESULTS, ThinLens, fit_lens, render, solve_lens
-from jaxdof._fit import auto_levels, layout, prepare, record_stages, residual, strategies
+from jaxdof._fit import (
+    auto_levels,
+    layout,
+    max_circle,
+    prepare,
+    record_stages,
+    residual,
+    strategies,
+)
 
 
 H = W = 32
@@ -158,7 +167,7 @@ def test_dead_zone_detected():
     image, depth = scene()
     tiny = lens(f_number=64.0, focus_distance=1.9)  # K = 0.16 px
     target = render(image, depth, tiny)
-    with pytest.raises(ValueError, match="half a pixel"):
+    with pytest.raises(ValueError, match="every circle is under half a pixel"):
         fit_lens(image, depth, target, tiny, max_radius=WINDOW, starts=STARTS)
     res = fit_lens(
         image, depth, target, tiny, max_radius=WINDOW, starts=STARTS, allow_degenerate=True
@@ -395,7 +404,12 @@ def test_residual_jacobian_rule():
     lay = layout._Spec(("f_number", "focus_distance"), (), 1, False).layout(base, depth)
     model = residual._Model(1, 3.0, False, jaxdof.DefocusModel(), n_live=2)
     args = (image, depth, targets, sqrt_w, lay)
-    y = model.pack(base, lay) + jnp.array([0.0, 0.3, -0.2])  # off the data, circles > 1/2 px
+    # Off the data, circles > 1/2 px: N e^0.3 and d_f - f times e^-0.2 (the point this test has
+    # always used; given as a lens, since the focus coordinate is no longer log(d_f - f)).
+    off = np.asarray(base).copy()
+    off[:, 1] *= np.exp(0.3)
+    off[:, 2] = off[:, 0] + (off[:, 2] - off[:, 0]) * np.exp(-0.2)
+    y = model.pack(jnp.asarray(off), lay)
     jac = jax.jit(jax.jacfwd(model))
     plain = jax.jit(jax.jacfwd(model.residuals))
     np.testing.assert_allclose(jac(y, args), plain(y, args), rtol=1e-12, atol=1e-15)
@@ -433,6 +447,24 @@ class GaussianDefocus(jaxdof.AbstractForwardModel):
         return sum(
             sent[i, k - dy : k - dy + h, k - dx : k - dx + w] for i, (dy, dx) in enumerate(offsets)
         )
+
+
+@pytest.mark.parametrize(
+    "options",
+    [{}, dict(downsample=2), dict(footprint=True), dict(normalize=True)],
+    ids=["plain", "downsample", "footprint", "normalize"],
+)
+def test_defocus_model_is_render(options):
+    """DefocusModel computes its circles from the focus power (exact derivatives through focus at
+    infinity) and is otherwise `render`: the same photo to float64 rounding, infinity included."""
+    image, depth = (x[:12, :12] for x in scene())
+    model = jaxdof.DefocusModel(**options)
+    for d_f in (1.6, np.inf):
+        lens_ = lens(focus_distance=d_f)
+        got = np.asarray(model(image, depth, lens_, max_radius=3.0))
+        want = np.asarray(render(image, depth, lens_, max_radius=3.0, **options))
+        # A few rounding units of the circles (1e-16 relative) moved through the coverage.
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-13)
 
 
 def test_user_forward_model_through_fit_lens():
@@ -730,3 +762,254 @@ def test_near_far_ambiguity_is_reported(pyramid):
     # Both starts reach an exact fit, at different focus distances: never a silent pick.
     assert not bool(res.success) and bool(res.status == RESULTS.ambiguous)
     assert "another start converged" in res.message
+
+
+# ------------------------------------------------------------------------ focus at infinity
+# A scene from 2 to 12 m: a lens focused at infinity blurs every point (7.8 / d px at f/2), and a
+# focus just short of the far end (11 m) is a lens whose near/far ambiguity is one-sided.
+FAR_WINDOW = 8.0  # px: the largest circle below is 3.9 px (at 2 m, focused at infinity)
+
+
+def far_scene(dtype=np.float64, seed=0):
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(size=(H, W))
+    depth = np.broadcast_to(2.0 + 10.0 * np.arange(W) / (W - 1), (H, W))
+    return image.astype(dtype), np.array(depth, dtype)
+
+
+def test_focus_coordinate_jacobian():
+    """The focus coordinate `y` (`fcap / (d_f - f) = |y| + 1e-12`) passes through infinity at
+    `y = 0`: the residual's Jacobian column there, at a tiny `y` and at an ordinary one is finite
+    and matches float64 finite differences (one-sided at 0: `|y|` is folded with derivative +1),
+    forward and reverse; in float32 it matches the float64 column."""
+
+    def setup(dtype):
+        image, depth = (x[:12, :12] for x in far_scene(dtype))
+        target = np.asarray(
+            render(image, depth, lens(dtype, focus_distance=np.inf), max_radius=4.0)
+        )
+        image, depth, targets, sqrt_w, base, _ = prepare._prepare(
+            image, depth, target + 0.01, lens(dtype), None, jaxdof.DefocusModel()
+        )
+        lay = layout._Spec(("f_number", "focus_distance"), (), 1, False).layout(base, depth)
+        model = residual._Model(1, 4.0, False, jaxdof.DefocusModel(), n_live=2)
+        return model, (image, depth, targets, sqrt_w, lay), model.pack(base, lay)
+
+    def column(dtype, y_focus):
+        model, args, y = setup(dtype)
+        y = y.at[2].set(y_focus)
+        return np.asarray(jax.jit(jax.jacfwd(model))(y, args)[:, 2], np.float64), model, args, y
+
+    model, args, _ = setup(np.float64)
+    f = jax.jit(model)
+    ref = {}
+    for y_focus in (0.0, 1e-9, 0.3):
+        col, _, _, y = column(np.float64, y_focus)
+        # Second-order differences with h = 1e-5: truncation ~h^2 = 1e-10, rounding
+        # ~1e-16 / h = 1e-11 (pixel values of order 1). One-sided at and next to 0, where a
+        # central difference would straddle the fold (f(-h) = f(h)).
+        h = 1e-5
+        e = jnp.zeros_like(y).at[2].set(h)
+        at = {k: np.asarray(f(y + k * e, args)) for k in (-1, 0, 1, 2)}
+        if y_focus > 2 * h:
+            fd = (at[1] - at[-1]) / (2 * h)
+        else:
+            fd = (-3 * at[0] + 4 * at[1] - at[2]) / (2 * h)
+        assert np.all(np.isfinite(col)) and np.max(np.abs(col)) > 0.1
+        # 1e-7 of the column's size: 1000 times the differences' error estimate above.
+        np.testing.assert_allclose(col, fd, atol=1e-7 * np.max(np.abs(col)))
+        grad = jax.jit(jax.grad(lambda y: jnp.sum(model(y, args) ** 2)))(y)
+        assert np.all(np.isfinite(np.asarray(grad))) and float(grad[2]) != 0
+        ref[y_focus] = col
+    jax.config.update("jax_enable_x64", False)
+    try:
+        for y_focus, want in ref.items():
+            col, *_ = column(np.float32, y_focus)
+            assert np.all(np.isfinite(col))
+            # float32 renders to ~1e-6 of the pixel values; the column to ~1e-5 of its size.
+            np.testing.assert_allclose(col, want, atol=1e-4 * np.max(np.abs(want)))
+    finally:
+        jax.config.update("jax_enable_x64", True)
+
+
+@pytest.mark.parametrize("true_focus", [np.inf, 11.0], ids=["infinity", "11m"])
+@pytest.mark.parametrize("init_focus", [4.0, np.inf], ids=["from-4m", "from-infinity"])
+def test_recovers_focus_at_and_near_infinity(true_focus, init_focus):
+    """A lens focused at infinity, and one focused just short of the scene's far end, from
+    starts on either side (4 m, inside the scene; infinity itself, with N off by 1.5x): the
+    default fit recovers N and the focus (float64, noise-free). At infinity the focus power is
+    0 to rounding, the focus distance has no finite standard error, and the message says so."""
+    image, depth = far_scene()
+    target = render(image, depth, lens(focus_distance=true_focus))
+    init = lens(f_number=3.0, focus_distance=init_focus)
+    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW)
+    assert bool(res.success), res.message
+    assert abs(float(res.lens.f_number) / TRUE["f_number"] - 1) < 1e-4
+    if np.isinf(true_focus):
+        # The fit's farthest focus is 1e12 times the nearest depth: 5e-13 diopters.
+        assert float(res.focus_power[0]) < 1e-12
+        assert np.isinf(float(res.stderr["focus_distance"]))
+        assert np.isfinite(float(res.focus_power_stderr))
+        assert "consistent with focus at infinity" in res.message
+    else:
+        np.testing.assert_allclose(float(res.lens.focus_distance), true_focus, rtol=1e-4)
+        assert np.isfinite(float(res.stderr["focus_distance"]))
+
+
+def test_recovers_focus_at_infinity_float32(float32):
+    """The same in float32, from 30 m with N off by 1.5x (a start that used to stall at the
+    bound with N = 2.84 and report convergence), with noise."""
+    image, depth = far_scene(np.float32)
+    rng = np.random.default_rng(5)
+    clean = np.asarray(render(image, depth, lens(np.float32, focus_distance=np.inf)))
+    target = (clean + 0.01 * rng.standard_normal(clean.shape)).astype(np.float32)
+    init = lens(np.float32, f_number=3.0, focus_distance=30.0)
+    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW)
+    assert bool(res.success), res.message
+    se = float(res.stderr["f_number"])
+    assert abs(float(res.lens.f_number) - TRUE["f_number"]) < 4 * se  # noise: within 4 sigma
+    assert float(res.focus_power[0]) < 4 * float(res.focus_power_stderr)
+
+
+def test_init_focused_at_infinity():
+    """An init with focus_distance = inf: as a fixed field (fit N alone) and as the start of a
+    free focus; the starts spread in diopters keep N where K = 0; max_circle handles it."""
+    image, depth = far_scene()
+    truth = lens(focus_distance=np.inf)
+    target = render(image, depth, truth)
+    init = lens(f_number=3.0, focus_distance=np.inf)
+    res = fit_lens(image, depth, target, init, free=("f_number",), max_radius=FAR_WINDOW)
+    assert bool(res.success), res.message
+    assert np.isinf(float(res.lens.focus_distance))  # fixed: the init's
+    np.testing.assert_allclose(float(res.lens.f_number), TRUE["f_number"], rtol=1e-6)
+    rows = strategies.start_lenses(
+        np.array([[0.05, 3.0, np.inf, PITCH]]), depth, free=("f_number", "focus_distance"), starts=4
+    )
+    assert np.all(np.isfinite(rows[1:])) and np.all(rows[:, 0, 1] == 3.0)
+    assert np.isinf(rows[0, 0, 2])
+    # Circles of a lens focused at infinity: f^2 / (2 N d p) at the nearest depth, 2 m.
+    r = max_circle(np.array([0.05, 2.0, np.inf, PITCH]), depth)
+    np.testing.assert_allclose(r, 0.05**2 / (2 * 2.0 * 2.0 * PITCH), rtol=1e-12)
+    r = max_circle(np.array([0.05, 2.0, np.inf, PITCH]), np.array([np.inf]))
+    assert r == 0.0
+
+
+# ---------------------------------------------------------------------- no exception escapes
+
+
+def test_focus_running_to_infinity_returns_a_result():
+    """The issue's crash: depth up to 12 m, true focus 8 m, a start far beyond it with N off, the
+    iterates running toward infinity (once an invalid lens and an EquinoxRuntimeError). Now
+    infinity is a point of the coordinate: a result, and the lens recovered."""
+    image, depth = far_scene()
+    target = render(image, depth, lens(focus_distance=8.0))
+    init = lens(f_number=4.0, focus_distance=60.0)
+    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW)
+    assert bool(res.success), res.message
+    np.testing.assert_allclose(float(res.lens.focus_distance), 8.0, rtol=1e-4)
+    np.testing.assert_allclose(float(res.lens.f_number), TRUE["f_number"], rtol=1e-4)
+
+
+class PickyDefocus(jaxdof.AbstractForwardModel):
+    """The default render, with a run-time check that refuses f-numbers above `limit`."""
+
+    limit: float = 3.0
+    differentiable_in_lens: ClassVar[bool] = True
+
+    def __call__(self, image, depth, lens, *, max_radius):
+        out = render(image, depth, lens, max_radius=max_radius)
+        return eqx.error_if(out, lens.f_number > self.limit, "PickyDefocus refuses f_number > 3")
+
+
+def test_runtime_error_while_solving_becomes_a_failed_result():
+    """A forward model whose run-time check (`equinox.error_if`) fires on an iterate: the fit
+    returns a failed result naming the reason, not an exception."""
+    image, depth = scene()
+    target = render(image, depth, lens(f_number=3.5), max_radius=WINDOW)
+    init = lens(f_number=2.5)
+    res = fit_lens(
+        image, depth, target, init, model=PickyDefocus(), max_radius=WINDOW, starts=STARTS
+    )
+    assert not bool(res.success) and bool(res.status == RESULTS.solver_failed)
+    assert "EquinoxRuntimeError while solving: PickyDefocus refuses f_number > 3" in res.message
+    assert float(res.lens.f_number) == 2.5  # the init: no solution to report
+    assert np.isnan(float(res.stderr["f_number"])) and int(res.num_steps) == 0
+    assert res.border == 6 and "FAILED" in res.summary()
+    obj = json.loads(json.dumps(res.to_dict(), allow_nan=False))
+    assert obj["status"] == "solver_failed" and obj["loss"] is None
+    # Bad inputs are still refused before any solve.
+    with pytest.raises(ValueError, match="border must be"):
+        fit_lens(image, depth, target, init, model=PickyDefocus(), border="wide")
+
+
+# ---------------------------------------------------------------------------- the verdict
+
+
+def test_flat_start_does_not_decide_the_fit():
+    """A start in the dead zone (every circle under half a pixel: zero Jacobian) "converges" at
+    once; a better start that runs out of steps has the lower loss and is the one reported (its
+    status says it did not converge), instead of a dead-zone refusal decided by the flat one."""
+    image, depth = scene()
+    target = render(image, depth, lens(), max_radius=WINDOW)
+    # Starts N = 8 (circles up to 0.76 px), 16 (up to 0.38 px: flat), 4.
+    init = lens(f_number=8.0)
+    res = fit_lens(
+        image, depth, target, init, free=("f_number",), max_radius=WINDOW, starts=3, max_steps=2
+    )
+    assert bool(res.status == RESULTS.max_steps), res.message
+    assert float(res.lens.f_number) < 8.0
+
+
+def test_degeneracy_wording_per_target_pair():
+    """focal_length and f_number free per photo (not shared): each photo alone cannot separate
+    them, and the message says so, naming the free set passed."""
+    image, depth = scene()
+    targets = [render(image, depth, lens(focus_distance=d)) for d in (1.4, 2.2)]
+    inits = [lens(f_number=2.6, focus_distance=d) for d in (1.4, 2.2)]
+    with pytest.raises(ValueError) as err:
+        fit_lens(
+            image, depth, targets, inits, free=("focal_length", "f_number"), max_radius=10.0,
+            starts=STARTS,
+        )  # fmt: skip
+    text = str(err.value)
+    assert "free set ('focal_length', 'f_number') (shared (), 2 target(s))" in text
+    assert "cannot both be fitted from one photo (here each of the 2 photos has its own" in text
+
+
+def test_degeneracy_wording_focus_at_infinity():
+    """A focus bracket whose photos are all focused at infinity: there every circle is
+    f^2 / (2 N d p), so f and N are not separated even with both shared; the message says why
+    (and not that they cannot be fitted from one photo)."""
+    image, depth = scene()
+    targets = [render(image, depth, lens(focus_distance=np.inf))] * 2
+    inits = [lens(focal_length=0.06, f_number=2.6, focus_distance=d) for d in (20.0, 40.0)]
+    kw = dict(
+        free=("focal_length", "f_number", "focus_distance"),
+        shared=("focal_length", "f_number"),
+        max_radius=10.0,
+        starts=STARTS,
+    )
+    with pytest.raises(ValueError) as err:
+        fit_lens(image, depth, targets, inits, **kw)
+    text = str(err.value)
+    assert "focus at infinity: the photos do not constrain focal_length, f_number there" in text
+    assert "only through f^2 / N" in text and "from one photo" not in text
+    res = fit_lens(image, depth, targets, inits, allow_degenerate=True, **kw)
+    assert bool(res.status == RESULTS.degenerate) and "focus at infinity" in res.message
+
+
+def test_degeneracy_wording_generic():
+    """One depth plane: one circle size per photo cannot give both N and the focus; the message
+    names the undetermined fields, and neither f/N-from-one-photo nor infinity."""
+    image, _ = scene()
+    depth = np.full((H, W), 2.0)
+    target = render(image, depth, lens(focus_distance=1.5))
+    with pytest.raises(ValueError) as err:
+        fit_lens(
+            image, depth, target, lens(f_number=2.2, focus_distance=1.45), max_radius=WINDOW,
+            starts=1,
+        )  # fmt: skip
+    text = str(err.value)
+    assert "the data do not determine f_number, focus_distance" in text
+    assert "one depth plane" in text
+    assert "from one photo" not in text and "focus at infinity" not in text

@@ -15,14 +15,22 @@ optimistix. `render` is the forward model, `jaxdof.DefocusModel` unless another
 `r = K |1 - d_f / d|` pixels with `K = f^2 / (2 N (d_f - f)) / p` (`jaxdof.coc_radius`), so one
 photo determines `K` and `d_f` but not `f` and `N` separately: any `(f, N)` with the same `K` (and
 `d_f`) renders the same image. `fit_lens` finds such a degeneracy from the rank of the
-column-scaled Jacobian at the solution and refuses it (`ValueError`) unless asked not to. A focus
+column-scaled Jacobian at the best solution and refuses it (`ValueError`, with the reason) unless
+asked not to. A focus
 bracket (several photos with different focus distances through the same `f` and `N`) separates
 them: `K_t \propto 1 / (d_{f,t} - f)` varies across the bracket in a way that depends on `f`.
 
 **Coordinates.** The solver works in unconstrained coordinates, so every iterate is a physical lens:
-`log N`, `log f` (or `logit(f / d_f)` when the focus distance is held fixed, keeping `f < d_f`), and
-`log(d_f - f)` for the focus distance. Results and standard errors are mapped back to each field's
-own units (metres, or dimensionless for `N`).
+`log N`, a bounded logit of `f` (`f` under the nearest depth and a fixed focus distance), and for
+the focus `fcap / (d_f - f) = |y| + 1e-12`, the focus power scaled to the scene, in which focus at
+infinity is the ordinary point `y = 0` (`layout.py`; `fit_lens` treats it as a bound the data may
+press against). The statistics are computed in `(f, N, 1 / d_f)` and mapped to each field's own
+units (metres, or dimensionless for `N`); a focus consistent with infinity has an infinite
+standard error in metres and a finite one in diopters (`FitResult.focus_power_stderr`).
+
+**The border.** Photo pixels within a circle's reach of the frame's edge receive light from outside
+it, which the image lacks; `fit_lens` leaves that band out of the residual by default (a zero
+weight, `border`).
 
 **The parts**, lower to higher:
 
@@ -32,14 +40,15 @@ own units (metres, or dimensionless for `N`).
 - `result.py`: `FitResult`, the status enumeration `RESULTS`, and the wording;
 - `prepare.py`: input checks and conversion;
 - `solve.py`: the pure solve, statistics, the compiled stages and `solve_lens`;
-- `strategies.py`: starts, windows, the coarse-to-fine pyramid;
+- `strategies.py`: starts, windows, the border band, the coarse-to-fine pyramid;
 - `verbose.py`: progress printing through optimistix's `verbose`;
 - `fit.py`: `fit_lens`, which orchestrates them.
 
 **For studies** (`jaxdof.internal` re-exports these): `auto_levels` (the automatic pyramid
 rule), `max_circle` (the largest circle of lenses over a depth map), `start_lenses` (fit_lens's
 starts), `window_for` (its window policy), `record_stages` (time the compiled stages of
-`fit_lens` calls without patching), `run_stage`, `fit_starts` and `finish` (the stages).
+`fit_lens` calls without patching), `run_stage`, `fit_starts`, `restate` and `finish` (the
+stages).
 """
 
 from .fit import fit_lens as fit_lens
@@ -53,6 +62,7 @@ from .solve import (
     finish as finish,
     fit_starts as fit_starts,
     record_stages as record_stages,
+    restate as restate,
     run_stage as run_stage,
     solve_lens as solve_lens,
 )

@@ -12,7 +12,7 @@ column-scaled Jacobian.
 
 `fit_lens` runs two compiled stages per level, `fit_starts` (every start, vmapped, and the
 Jacobians at the best) and `finish` (statistics and the `FitResult`), through `run_stage`, which
-`record_stages` can time.
+`record_stages` can time; settling a focus at infinity adds a `fit_starts` and a `restate`.
 """
 
 from __future__ import annotations
@@ -201,7 +201,7 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)
     converged = status == RESULTS.successful
     _, _, targets, sqrt_w, layout = args
-    eps = jnp.finfo(targets.dtype).eps
+    eps = float(jnp.finfo(targets.dtype).eps)  # a Python float: no float32 x float64 mix
     floor = 10 * eps * jnp.sum(jnp.square(targets * sqrt_w).astype(loss.dtype))
     n = _n_residuals(targets, sqrt_w).astype(loss.dtype)
     best = _pick_best(loss, converged, n, jnp.asarray(layout.live).shape[0], floor)
@@ -345,7 +345,8 @@ def record_stages() -> Iterator[list[tuple[str, float]]]:
     """Time the compiled stages of every `fit_lens` call inside the block.
 
     `with record_stages() as log: fit_lens(...)` appends `(stage, seconds)` to `log` for every
-    compiled call (`"fit_starts"` per pyramid level and window, then `"finish"`), each timed up to
+    compiled call (`"fit_starts"` per pyramid level and window, `"fit_starts"` and `"restate"`
+    when a focus is settled at infinity, then `"finish"`), each timed up to
     its results being ready (`jax.block_until_ready`); `fit_lens` reads those results on the host
     right after anyway, so the timing does not change the fit's own wall time. The rest of a warm
     `fit_lens` call (checks, set-up, wording) is its total time minus their sum.
@@ -403,7 +404,10 @@ def solve_lens(
     multi-start), and nothing is raised: read `.status` / `.success` (per scene under `vmap`; a
     degenerate free set gives `status == jaxdof.RESULTS.degenerate`, circles all under half a
     pixel `jaxdof.RESULTS.dead_zone`). Circles above `max_radius` are clamped and not detected
-    here; `notes` is empty, `message` the status's message.
+    here; `notes` is empty, `message` the status's message. A focus that the data pull beyond
+    infinity is not settled there as `fit_lens` does (one solve, no active-set step): the solver
+    can stall next to it (`status == jaxdof.RESULTS.max_steps`); and an error raised while the
+    solve runs (a forward model's run-time check) is raised, not reported.
 
     `border` as in `fit_lens`: by default the band of `forward.border_band(max_radius)` photo
     pixels along the edges (`ceil(max_radius)` for the default model) is left out of the
