@@ -1,8 +1,14 @@
+import pathlib
+
 import jax
 import jax.random as jr
 import pytest
 
 
+# The whole session runs with x64 on, rank promotion raising and strict dtype promotion: float32
+# behaviour is tested with explicit float32 arrays (strict promotion raises on any silent mix with
+# float64), and what needs JAX's default config (x64 off: float32 defaults, int32 indices) runs in
+# a subprocess. Switching x64 mid-session recompiles everything compiled under the other setting.
 jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_rank_promotion", "raise")
 jax.config.update("jax_numpy_dtype_promotion", "strict")
@@ -15,11 +21,40 @@ def getkey():
     return lambda: next(keys)
 
 
+@pytest.fixture(autouse=True)
+def _x64_stays_on():
+    """Fail the test that leaves x64 off (and switch it back), rather than the tests after it."""
+    yield
+    if not jax.config.jax_enable_x64:
+        jax.config.update("jax_enable_x64", True)
+        pytest.fail("the test left jax_enable_x64 off; run float32 code on float32 arrays instead")
+
+
 @pytest.fixture
 def float32():
-    """Run a test with JAX's default dtype at float32 (x64 off), restoring x64 afterwards."""
+    """Switches x64 off for one test: a mid-session flip, kept for the 13 tests that use it.
+
+    With x64 on and explicit float32 arrays, 42 of 45 float32 tests pass; three do not yet (a
+    float64 default inside a jitted check, a strict-promotion warning), so the flip stays until
+    they are rewritten or moved to a subprocess.
+    """
     jax.config.update("jax_enable_x64", False)
     try:
         yield
     finally:
         jax.config.update("jax_enable_x64", True)
+
+
+# The `slow` marker, from one list (tests/slow_tests.txt: file::function, with its provenance).
+_SLOW = frozenset(
+    line.strip()
+    for line in (pathlib.Path(__file__).parent / "slow_tests.txt").read_text().splitlines()
+    if line.strip() and not line.startswith("#")
+)
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if item.nodeid.split("[")[0] in _SLOW:
+            item.add_marker(pytest.mark.slow)
