@@ -26,6 +26,7 @@ from jaxdof import (
     ThinLens,
     coc_filter,
     coc_radius,
+    fit_lens,
     render,
 )
 from jaxdof._filters import METHOD_ALIASES, as_method, layered
@@ -178,8 +179,19 @@ def test_user_method_runs_through_coc_filter_render_jit_and_grad():
     # smooth in the f-number (radii well inside the 3 px window): central differences with step
     # 1e-6 in float64 are accurate to ~1e-10 relative; 1e-6 is ample
     check_grads(jax.jit(loss), (2.0,), order=1, modes=("fwd", "rev"), eps=1e-6, rtol=1e-6)
-    # (the fit engineer adds `fit_lens(..., method=GaussianBlur())` here once the fit takes method
-    # objects: a user's method must drive a fit like a built-in one)
+    # A user's method drives a fit like a built-in one: the photo made through it, a start 20 %
+    # off in N and focus, fitted back through the same method. `border=False`: the photo is made
+    # by this very model (zeros outside the frame on both sides), and the 7 x 9 frame's border
+    # band of 3 px would leave 3 of its 63 pixels.
+    photo = render(image, depth, lens, method=method, max_radius=3.0)
+    start = ThinLens(0.05, 2.4, 2.0, pitch)
+    fit = fit_lens(
+        image, depth, photo, start, method=method, max_radius=3.0, starts=1, border=False
+    )
+    assert bool(fit.success), fit.message
+    # noise-free, float64: the solver's tolerance (1e-8 in log coordinates) bounds the error
+    np.testing.assert_allclose(float(fit.lens.f_number), 2.0, rtol=1e-6)
+    np.testing.assert_allclose(float(fit.lens.focus_distance), 2.5, rtol=1e-6)
 
 
 # --- limits: the analytic overlap is the n -> infinity limit of supersampling and jitter ---------

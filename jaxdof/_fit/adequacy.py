@@ -84,6 +84,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import jax.numpy as jnp
 import jax.scipy.special as jsp
@@ -149,6 +150,206 @@ def _tile_index(n: int, tiles: int, band: int) -> np.ndarray:
     return out
 
 
+class _Factors(NamedTuple):
+    """The tiles' SVD factors and the global problem formed from them (`J^T J = M^T M`)."""
+
+    s: Array  # (K, k) the tiles' singular values
+    vt: Array  # (K, k, p) their right singular vectors
+    cproj: Array  # (K, k) U_k^T r_k: b_k^T A_k^+ b_k = |c_k|^2
+    big_m: Array  # (K k, p) the stacked S_k V_k^T
+    sm: Array  # (r,) the global singular values
+    vtm: Array  # (r, p) the global right singular vectors
+    tol: Array  # the rank threshold, sqrt(eps) times the largest global singular value
+    good: Array  # (r,) the global directions that count
+    kept: Array  # (K, k) the tiles' directions that count
+    q_global: Array  # b^T A^+ b
+    rank: Array  # rank(A)
+    informative: Array  # tiles with rank >= 1
+
+
+def _check_layout(
+    residual: Array,
+    jac: Array,
+    shape: Sequence[int],
+    used: Sequence[int] | None,
+    grid: tuple[int, int] | None,
+    band: int,
+) -> tuple[tuple[int, ...], int, tuple[int, ...], tuple[int, int], int]:
+    """Check the static arguments: `(shape, C, free columns, (ty, tx), band)`."""
+    shape = tuple(int(s) for s in shape)
+    if len(shape) not in (3, 4):
+        raise ValueError(f"shape must be (T, H, W) or (T, H, W, C), got {shape}")
+    t, h, w = shape[:3]
+    c = shape[3] if len(shape) == 4 else 1
+    n_res = t * h * w * c
+    if residual.shape != (n_res,) or jac.ndim != 2 or jac.shape[0] != n_res:
+        raise ValueError(
+            f"residual {residual.shape} and jac {jac.shape} must be (n,) and (n, P) with "
+            f"n = prod(shape) = {n_res}"
+        )
+    cols = tuple(range(jac.shape[1])) if used is None else tuple(int(i) for i in used)
+    band = int(band)
+    if not 0 <= 2 * band < min(h, w):
+        raise ValueError(f"band={band} must be >= 0 and leave pixels inside a {h} x {w} photo")
+    inner = (h - 2 * band, w - 2 * band)
+    ty, tx = tile_grid(inner) if grid is None else (int(grid[0]), int(grid[1]))
+    if not (1 <= ty <= inner[0] and 1 <= tx <= inner[1]):
+        raise ValueError(f"grid {(ty, tx)} must have 1..{inner[0]} x 1..{inner[1]} tiles")
+    return shape, c, cols, (ty, tx), band
+
+
+def _unit_columns(x: Array) -> Array:
+    """Scale the last axis's columns of `(T, H, W, C, q)` to unit norm over the whole image (so
+    the ranks do not depend on units); zero columns stay zero."""
+    scale = jnp.sqrt(jnp.sum(x * x, axis=(0, 1, 2, 3)))
+    return x / jnp.where(scale > 0, scale, 1)[None, None, None, None, :]
+
+
+def _gather_tiles(x: Array, ri: np.ndarray, ci: np.ndarray) -> Array:
+    """Gather `(T, H, W, ...)` into `(K, m, ...)`: every target and channel of a tile together."""
+    ty, tx = ri.shape[0], ci.shape[0]
+    x = jnp.pad(x, [(0, 0), (0, 1), (0, 1)] + [(0, 0)] * (x.ndim - 3))  # the zero row/col
+    x = x[:, ri[:, :, None, None], ci[None, None, :, :]]  # (T, ty, hs, tx, ws, ...)
+    x = jnp.moveaxis(x, (1, 3), (0, 1))  # (ty, tx, T, hs, ws, ...)
+    return x.reshape((ty * tx, -1) + x.shape[6:])
+
+
+def _tiled(
+    residual: Array,
+    jac: Array,
+    shape: Sequence[int],
+    mask: AnyFloatLike | None,
+    used: Sequence[int] | None,
+    extra: Array | None,
+    grid: tuple[int, int] | None,
+    band: int,
+) -> tuple[Array, Array, Array, Array, Array | None] | None:
+    """Check the inputs and tile them: `(n, ssr, r_t (K, m), J_t (K, m, p), X_t (K, m, E) or
+    None)`, the Jacobian's and `extra`'s columns at unit norm; `None` when no column is free."""
+    shape, c, cols, (ty, tx), band = _check_layout(residual, jac, shape, used, grid, band)
+    t, h, w = shape[:3]
+    dtype = residual.dtype
+    keep = jnp.ones(shape, bool) if mask is None else jnp.asarray(mask) != 0
+    keep = jnp.broadcast_to(keep, shape).reshape(t, h, w, c)
+    r = jnp.where(keep, residual.reshape(t, h, w, c), 0)
+    p = len(cols)
+    if p == 0:
+        return None
+    jac = jac[:, jnp.asarray(cols, jnp.int32)].astype(dtype)
+    jac = jnp.where(keep[..., None], jac.reshape(t, h, w, c, p), 0)
+    n = jnp.sum(keep).astype(dtype)
+    ssr = jnp.sum(r * r)
+    ri, ci = _tile_index(h, ty, band), _tile_index(w, tx, band)
+    jt = _gather_tiles(_unit_columns(jac), ri, ci)  # (K, m, p)
+    rt = _gather_tiles(r, ri, ci)  # (K, m)
+    if extra is None:
+        return n, ssr, rt, jt, None
+    x = jnp.where(keep[..., None], extra.astype(dtype).reshape(t, h, w, c, extra.shape[1]), 0)
+    return n, ssr, rt, jt, _gather_tiles(_unit_columns(x), ri, ci)
+
+
+def _factors(jt: Array, rt: Array) -> _Factors:
+    """The tiles' SVD factors, the global problem from them (no squaring of `J`), the ranks and
+    the pooled term `b^T A^+ b` of the statistic."""
+    dtype = jt.dtype
+    p = jt.shape[2]
+    u, s, vt = jnp.linalg.svd(jt, full_matrices=False)  # (K, m, k), (K, k), (K, k, p)
+    cproj = jnp.einsum("kmi,km->ki", u, rt)  # U_k^T r_k: b_k^T A_k^+ b_k = |c_k|^2
+    # The global problem from the tiles' factors: J^T J = M^T M, J^T r = M^T c (no squaring).
+    big_m = (s[:, :, None] * vt).reshape(-1, p)
+    um, sm, vtm = jnp.linalg.svd(big_m, full_matrices=False)
+    tol = math.sqrt(float(jnp.finfo(dtype).eps)) * sm[0]
+    good = sm > tol
+    kept = s > tol
+    cg = um.T @ cproj.reshape(-1)
+    q_global = jnp.sum(jnp.where(good, cg * cg, 0))
+    rank = jnp.sum(good).astype(dtype)
+    informative = jnp.sum(jnp.any(kept, axis=1))
+    return _Factors(s, vt, cproj, big_m, sm, vtm, tol, good, kept, q_global, rank, informative)
+
+
+def _tile_sums(f: _Factors, jt: Array, rt: Array, xt: Array | None) -> tuple[Array, Array]:
+    """`(sum_k b_k^T A_k^+ b_k, sum_k rank_k)` of the unrestricted model: each tile its own lens
+    and, with `xt`, its own `extra` columns."""
+    dtype = jt.dtype
+    if xt is None:
+        q_tiles = jnp.sum(jnp.where(f.kept, f.cproj * f.cproj, 0))
+        return q_tiles, jnp.sum(f.kept).astype(dtype)
+    ua, sa, _ = jnp.linalg.svd(jnp.concatenate([jt, xt], axis=2), full_matrices=False)
+    ca = jnp.einsum("kmi,km->ki", ua, rt)
+    kept_a = sa > f.tol
+    return jnp.sum(jnp.where(kept_a, ca * ca, 0)), jnp.sum(kept_a).astype(dtype)
+
+
+def _noise_variance(
+    ssr: Array,
+    q_tiles: Array,
+    dof_noise: Array,
+    sigma2: ScalarLike | None,
+    noise_floor: ScalarLike,
+) -> Array:
+    """The noise variance: `sigma2`, or within tiles `SSR_u / (n - sum_k rank_k)`; at least
+    `noise_floor^2`."""
+    dtype = ssr.dtype
+    if sigma2 is None:
+        var = jnp.maximum(ssr - q_tiles, 0) / jnp.maximum(dof_noise, 1)
+    else:
+        var = jnp.asarray(sigma2, dtype)
+    floor = jnp.asarray(noise_floor, dtype)
+    return jnp.maximum(var, floor * floor)
+
+
+def _p_value(chi2: Array, dof: Array, dof_noise: Array, *, known: bool) -> Array:
+    """The survival of `chi2`: `F(dof, dof_noise)` (estimated variance) or `chi^2(dof)`
+    (`known`); 1 where there are too few degrees of freedom to test."""
+    safe_dof = jnp.maximum(dof, 1)
+    if not known:
+        d2 = jnp.maximum(dof_noise, 1)
+        # F(dof, d2) survival: I_{d2 / (d2 + dof F)}(d2 / 2, dof / 2), with dof F = chi2.
+        p_value = jsp.betainc(d2 / 2, safe_dof / 2, d2 / (d2 + chi2))
+    else:
+        p_value = jsp.gammaincc(safe_dof / 2, chi2 / 2)
+    testable = (dof >= 1) & (dof_noise >= 1)
+    return jnp.where(testable, p_value, 1)
+
+
+def _spread(
+    f: _Factors, var: Array, ssr: Array, n: Array, chi2_num: Array, safe_dof: Array
+) -> Array:
+    """The tile-spread factor `s >= 1`: `s^2 V_fit >= V_fit + Omega` in every direction, and at
+    least the Birge ratio; 1 with fewer than 2 informative tiles or a zero residual."""
+    dtype = ssr.dtype
+    p = f.vt.shape[2]
+    # The tile spread. Tile scores at the linearised exact solution: g_k = b_k - A_k A^+ b.
+    inv_s = jnp.where(f.good, 1 / jnp.where(f.good, f.sm, 1), 0)
+    a_pinv = (f.vtm.T * (inv_s * inv_s)[None, :]) @ f.vtm
+    a_all = f.big_m.T @ f.big_m
+    a_k = jnp.einsum("kij,ki,kil->kjl", f.vt, f.s * f.s, f.vt)  # (K, p, p)
+    scores = jnp.einsum("kij,ki->kj", f.vt, f.s * f.cproj)  # J_k^T r_k
+    scores = scores - jnp.einsum("kij,j->ki", a_k, a_pinv @ (f.big_m.T @ f.cproj.reshape(-1)))
+    k_eff = f.informative.astype(dtype)
+    small = k_eff / jnp.maximum(k_eff - 1, 1)  # the K / (K - 1) of a mean estimated from K
+    # Omega, the covariance of the tiles' lenses about their mean beyond the noise, by moments:
+    # E sum_k g_k g_k^T = sum_k A_k Omega A_k + var (A - sum_k A_k A^+ A_k), solved for Omega
+    # (p^2 unknowns) and clipped to be positive semi-definite.
+    noise = var * (a_all - jnp.einsum("kij,jl,klm->im", a_k, a_pinv, a_k))
+    rhs = small * (scores.T @ scores - noise)
+    kron = jnp.einsum("kab,kcd->acbd", a_k, a_k).reshape(p * p, p * p)
+    omega = (jnp.linalg.pinv(kron) @ rhs.reshape(-1)).reshape(p, p)
+    ev, evec = jnp.linalg.eigh(0.5 * (omega + omega.T))
+    omega = (evec * jnp.maximum(ev, 0)[None, :]) @ evec.T
+    # V_fit = var_fit A^+ (what the fit reports). The largest eigenvalue of
+    # V_fit^{-1/2} Omega V_fit^{-1/2}, in the basis of A's singular vectors: S V^T Omega V S.
+    var_fit = ssr / jnp.maximum(n - f.rank, 1)
+    safe_var = jnp.where(var_fit > 0, var_fit, 1)
+    sv = f.sm[:, None] * (f.vtm @ omega @ f.vtm.T) * f.sm[None, :]
+    sv = jnp.where(f.good[:, None] & f.good[None, :], sv, 0)
+    tiles_ratio = 1 + jnp.linalg.eigvalsh(sv)[-1] / safe_var
+    birge = chi2_num / safe_dof / safe_var
+    spread = jnp.sqrt(jnp.maximum(jnp.maximum(tiles_ratio, birge), 1))
+    return jnp.where((k_eff >= 2) & (var_fit > 0), spread, 1)
+
+
 def adequacy(
     residual: Float[Array, " n"],
     jac: Float[Array, "n P"],
@@ -197,36 +398,9 @@ def adequacy(
     square), `spread` (the tile-spread factor whether or not the test fires, for diagnostics),
     `adequate` (`p_value >= alpha`, or too few degrees of freedom to test).
     """
-    shape = tuple(int(s) for s in shape)
-    if len(shape) not in (3, 4):
-        raise ValueError(f"shape must be (T, H, W) or (T, H, W, C), got {shape}")
-    t, h, w = shape[:3]
-    c = shape[3] if len(shape) == 4 else 1
-    n_res = t * h * w * c
-    if residual.shape != (n_res,) or jac.ndim != 2 or jac.shape[0] != n_res:
-        raise ValueError(
-            f"residual {residual.shape} and jac {jac.shape} must be (n,) and (n, P) with "
-            f"n = prod(shape) = {n_res}"
-        )
-    cols = tuple(range(jac.shape[1])) if used is None else tuple(int(i) for i in used)
-    band = int(band)
-    if not 0 <= 2 * band < min(h, w):
-        raise ValueError(f"band={band} must be >= 0 and leave pixels inside a {h} x {w} photo")
-    inner = (h - 2 * band, w - 2 * band)
-    ty, tx = tile_grid(inner) if grid is None else (int(grid[0]), int(grid[1]))
-    if not (1 <= ty <= inner[0] and 1 <= tx <= inner[1]):
-        raise ValueError(f"grid {(ty, tx)} must have 1..{inner[0]} x 1..{inner[1]} tiles")
-    dtype = residual.dtype
-    keep = jnp.ones(shape, bool) if mask is None else jnp.asarray(mask) != 0
-    keep = jnp.broadcast_to(keep, shape).reshape(t, h, w, c)
-    r = jnp.where(keep, residual.reshape(t, h, w, c), 0)
-    p = len(cols)
-    jac = jac[:, jnp.asarray(cols, jnp.int32)].astype(dtype) if p else jac[:, :0].astype(dtype)
-    jac = jnp.where(keep[..., None], jac.reshape(t, h, w, c, p), 0)
-    n = jnp.sum(keep).astype(dtype)
-    ssr = jnp.sum(r * r)
-    one = jnp.ones((), dtype)
-    if p == 0:  # nothing free: nothing to test
+    one = jnp.ones((), residual.dtype)
+    data = _tiled(residual, jac, shape, mask, used, extra, grid, band)
+    if data is None:  # nothing free: nothing to test
         return dict(
             chi2=0 * one,
             dof=0 * one,
@@ -236,104 +410,22 @@ def adequacy(
             spread=one,
             adequate=jnp.ones((), bool),
         )
-
-    # Column scaling: unit columns over the whole image, so the ranks do not depend on units.
-    scale = jnp.sqrt(jnp.sum(jac * jac, axis=(0, 1, 2, 3)))
-    jac = jac / jnp.where(scale > 0, scale, 1)[None, None, None, None, :]
-
-    # Gather (T, H, W, C, ...) into (K, m, ...): every target and channel of a tile together.
-    ri, ci = _tile_index(h, ty, band), _tile_index(w, tx, band)
-
-    def tiles(x):
-        x = jnp.pad(x, [(0, 0), (0, 1), (0, 1)] + [(0, 0)] * (x.ndim - 3))  # the zero row/col
-        x = x[:, ri[:, :, None, None], ci[None, None, :, :]]  # (T, ty, hs, tx, ws, ...)
-        x = jnp.moveaxis(x, (1, 3), (0, 1))  # (ty, tx, T, hs, ws, ...)
-        return x.reshape((ty * tx, -1) + x.shape[6:])
-
-    jt = tiles(jac)  # (K, m, p)
-    rt = tiles(r)  # (K, m)
-
-    u, s, vt = jnp.linalg.svd(jt, full_matrices=False)  # (K, m, k), (K, k), (K, k, p)
-    cproj = jnp.einsum("kmi,km->ki", u, rt)  # U_k^T r_k: b_k^T A_k^+ b_k = |c_k|^2
-    # The global problem from the tiles' factors: J^T J = M^T M, J^T r = M^T c (no squaring).
-    big_m = (s[:, :, None] * vt).reshape(-1, p)
-    um, sm, vtm = jnp.linalg.svd(big_m, full_matrices=False)
-    tol = math.sqrt(float(jnp.finfo(dtype).eps)) * sm[0]
-    good = sm > tol
-    kept = s > tol
-    cg = um.T @ cproj.reshape(-1)
-    q_global = jnp.sum(jnp.where(good, cg * cg, 0))
-    rank = jnp.sum(good).astype(dtype)
-    informative = jnp.sum(jnp.any(kept, axis=1))
-    if extra is None:
-        q_tiles = jnp.sum(jnp.where(kept, cproj * cproj, 0))
-        rank_tiles = jnp.sum(kept).astype(dtype)
-    else:
-        # The unrestricted model: each tile its own lens and its own `extra` columns.
-        e = extra.shape[1]
-        x = jnp.where(keep[..., None], extra.astype(dtype).reshape(t, h, w, c, e), 0)
-        x_scale = jnp.sqrt(jnp.sum(x * x, axis=(0, 1, 2, 3)))
-        x = x / jnp.where(x_scale > 0, x_scale, 1)[None, None, None, None, :]
-        ua, sa, _ = jnp.linalg.svd(jnp.concatenate([jt, tiles(x)], axis=2), full_matrices=False)
-        ca = jnp.einsum("kmi,km->ki", ua, rt)
-        kept_a = sa > tol
-        q_tiles = jnp.sum(jnp.where(kept_a, ca * ca, 0))
-        rank_tiles = jnp.sum(kept_a).astype(dtype)
-
-    dof = rank_tiles - rank
+    n, ssr, rt, jt, xt = data
+    f = _factors(jt, rt)
+    q_tiles, rank_tiles = _tile_sums(f, jt, rt, xt)
+    dof = rank_tiles - f.rank
     dof_noise = n - rank_tiles
-    chi2_num = jnp.maximum(q_tiles - q_global, 0)
-    if sigma2 is None:
-        var = jnp.maximum(ssr - q_tiles, 0) / jnp.maximum(dof_noise, 1)
-    else:
-        var = jnp.asarray(sigma2, dtype)
-    floor = jnp.asarray(noise_floor, dtype)
-    var = jnp.maximum(var, floor * floor)
+    chi2_num = jnp.maximum(q_tiles - f.q_global, 0)
+    var = _noise_variance(ssr, q_tiles, dof_noise, sigma2, noise_floor)
     chi2 = jnp.where(var > 0, chi2_num / jnp.where(var > 0, var, 1), 0)
-    safe_dof = jnp.maximum(dof, 1)
-    if sigma2 is None:
-        d2 = jnp.maximum(dof_noise, 1)
-        # F(dof, d2) survival: I_{d2 / (d2 + dof F)}(d2 / 2, dof / 2), with dof F = chi2.
-        p_value = jsp.betainc(d2 / 2, safe_dof / 2, d2 / (d2 + chi2))
-    else:
-        p_value = jsp.gammaincc(safe_dof / 2, chi2 / 2)
-    testable = (dof >= 1) & (dof_noise >= 1)
-    p_value = jnp.where(testable, p_value, 1)
+    p_value = _p_value(chi2, dof, dof_noise, known=sigma2 is not None)
     adequate = p_value >= alpha
-
-    # The tile spread. Tile scores at the linearised exact solution: g_k = b_k - A_k A^+ b.
-    inv_s = jnp.where(good, 1 / jnp.where(good, sm, 1), 0)
-    a_pinv = (vtm.T * (inv_s * inv_s)[None, :]) @ vtm
-    a_all = big_m.T @ big_m
-    a_k = jnp.einsum("kij,ki,kil->kjl", vt, s * s, vt)  # (K, p, p)
-    scores = jnp.einsum("kij,ki->kj", vt, s * cproj)  # J_k^T r_k
-    scores = scores - jnp.einsum("kij,j->ki", a_k, a_pinv @ (big_m.T @ cproj.reshape(-1)))
-    k_eff = informative.astype(dtype)
-    small = k_eff / jnp.maximum(k_eff - 1, 1)  # the K / (K - 1) of a mean estimated from K
-    # Omega, the covariance of the tiles' lenses about their mean beyond the noise, by moments:
-    # E sum_k g_k g_k^T = sum_k A_k Omega A_k + var (A - sum_k A_k A^+ A_k), solved for Omega
-    # (p^2 unknowns) and clipped to be positive semi-definite.
-    noise = var * (a_all - jnp.einsum("kij,jl,klm->im", a_k, a_pinv, a_k))
-    rhs = small * (scores.T @ scores - noise)
-    kron = jnp.einsum("kab,kcd->acbd", a_k, a_k).reshape(p * p, p * p)
-    omega = (jnp.linalg.pinv(kron) @ rhs.reshape(-1)).reshape(p, p)
-    ev, evec = jnp.linalg.eigh(0.5 * (omega + omega.T))
-    omega = (evec * jnp.maximum(ev, 0)[None, :]) @ evec.T
-    # V_fit = var_fit A^+ (what the fit reports). The largest eigenvalue of
-    # V_fit^{-1/2} Omega V_fit^{-1/2}, in the basis of A's singular vectors: S V^T Omega V S.
-    var_fit = ssr / jnp.maximum(n - rank, 1)
-    safe_var = jnp.where(var_fit > 0, var_fit, 1)
-    sv = sm[:, None] * (vtm @ omega @ vtm.T) * sm[None, :]
-    sv = jnp.where(good[:, None] & good[None, :], sv, 0)
-    tiles_ratio = 1 + jnp.linalg.eigvalsh(sv)[-1] / safe_var
-    birge = chi2_num / safe_dof / safe_var
-    spread = jnp.sqrt(jnp.maximum(jnp.maximum(tiles_ratio, birge), 1))
-    spread = jnp.where((k_eff >= 2) & (var_fit > 0), spread, 1)
+    spread = _spread(f, var, ssr, n, chi2_num, jnp.maximum(dof, 1))
     return dict(
         chi2=chi2,
         dof=dof,
         p_value=p_value,
-        tiles=informative.astype(jnp.int32),
+        tiles=f.informative.astype(jnp.int32),
         inflation=jnp.where(adequate, one, spread),
         spread=spread,
         adequate=adequate,

@@ -19,6 +19,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import ArrayLike
 
+from .._filters import AbstractMethod
 from .._filters.common import is_concrete
 from .._lens import ThinLens
 from .forward import AbstractForwardModel
@@ -480,7 +481,7 @@ def fit_lens(
     starts: int | None = None,
     verbose: bool | Callable[..., None] = False,
     model: AbstractForwardModel | None = None,
-    method: str | None = None,
+    method: str | AbstractMethod | None = None,
     footprint: bool | None = None,
     pyramid: int | None = None,
     downsample: int | None = None,

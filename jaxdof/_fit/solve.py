@@ -30,6 +30,7 @@ import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, ArrayLike
 
+from .._filters import AbstractMethod
 from .._lens import ThinLens
 from .forward import AbstractForwardModel
 from .layout import _W_MIN, _Spec, theta_floor
@@ -390,7 +391,7 @@ def solve_lens(
     weight: ArrayLike | None = None,
     exposure: bool = False,
     model: AbstractForwardModel | None = None,
-    method: str | None = None,
+    method: str | AbstractMethod | None = None,
     footprint: bool | None = None,
     downsample: int | None = None,
     border: bool | str | int = "auto",
