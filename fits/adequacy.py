@@ -21,8 +21,8 @@ Run:
 
 Writes `fits/results/adequacy.md` and `fits/results/adequacy_raw.json` (`--quick` adds `_quick`).
 
-Method. float64, the scenes, lens, starts and noise of `fits/recover.py` (the scene functions are
-copied here; same seed, so the same scenes): grey 24 x 24 textures on four depth maps, f = 50 mm,
+Method. float64, the scenes, lens, starts and noise of `fits/recover.py` (imported from it;
+same seed, so the same scenes): grey 24 x 24 textures on four depth maps, f = 50 mm,
 N = 2, pitch 80 um, focus 1.6 m (1.8 m for `smooth`), `free=("f_number", "focus_distance")`,
 `max_radius=6`, the default starts and border (`border="auto"`: the 6 px band that light from
 outside the frame reaches is left out, so 12 x 12 pixels are fitted). Each fit is `fit_lens`;
@@ -52,7 +52,6 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import scipy.ndimage  # noqa: E402
 from _common import (  # noqa: E402
     command,
     load_json,
@@ -67,17 +66,28 @@ from jaxdof import ThinLens, fit_lens, render  # noqa: E402
 
 
 # isort: split
+# recover.py's scenes, lens and starts: the false-alarm trials are that study's trials.
+from recover import (  # noqa: E402
+    FREE,
+    N_TRUE,
+    PITCH,
+    SIGMAS,
+    WINDOW,
+    F,
+    H,
+    W,
+    blur_scale,
+    random_init,
+    scenes,
+    true_lens,
+)
+
+
+# isort: split
 # Not wired into fit_lens yet (the lead wires it into `solve.finish`): called here on the Jacobian.
 from jaxdof.internal import ADEQUACY_ALPHA as ALPHA, adequacy, rounding_noise  # noqa: E402
 
 
-H = W = 24
-PITCH = 8e-5
-F = 0.05
-N_TRUE = 2.0
-WINDOW = 6.0
-SIGMAS = (0.0, 0.001, 0.01, 0.03)
-FREE = ("f_number", "focus_distance")
 KINDS = ("pentagon", "vignette", "occlusion", "border")
 MIS_SIGMAS = (0.001, 0.01)
 TOL = (0.02, 0.05)  # relative errors in N and d_f that count as recovered
@@ -85,45 +95,6 @@ BIG = 36  # the larger frame of `border`
 WINDOW_BAND = int(np.ceil(WINDOW))  # the default border band of a fit with max_radius = 6
 EXPOSURE_TILES = True
 PENTAGON_AREA = 2.5 * np.sin(np.deg2rad(72.0)) / np.pi
-
-
-# --------------------------------------------------------------- recover.py's scenes (copied)
-
-
-def texture(rng, size=H):
-    img = scipy.ndimage.gaussian_filter(rng.uniform(size=(size, size)), 0.7)
-    img = (img - img.min()) / (img.max() - img.min())
-    return 0.2 + 0.6 * img
-
-
-def scenes(rng, size=H):
-    h = w = size
-    yy, xx = np.mgrid[0:h, 0:w]
-    out = {}
-    out["planes"] = np.select([xx < w // 3, xx < 2 * w // 3], [1.2, 2.0], 3.5).astype(float)
-    out["slant"] = 1.0 + 2.0 * xx / (w - 1)
-    edges = np.sort(rng.choice(np.arange(3, w - 3), 5, replace=False))
-    levels = rng.uniform(1.0, 4.0, size=6)
-    out["steps"] = levels[np.searchsorted(edges, xx[0], side="right")][None, :] + 0 * yy
-    inv = scipy.ndimage.gaussian_filter(rng.standard_normal((h, w)), 6.0 * size / H)
-    inv = (inv - inv.min()) / (inv.max() - inv.min())
-    out["smooth"] = 1 / (1 / 4.0 + inv * (1 / 1.0 - 1 / 4.0))
-    return {k: (texture(rng, size), v.astype(np.float64)) for k, v in out.items()}
-
-
-def true_lens(name):
-    return ThinLens(F, N_TRUE, 1.8 if name == "smooth" else 1.6, PITCH)
-
-
-def blur_scale(n, d_f):
-    return F * F / (2 * n * (d_f - F) * PITCH)
-
-
-def random_init(rng, lens):
-    n0, d0 = float(lens.f_number), float(lens.focus_distance)
-    d = d0 * rng.uniform(0.7, 1.3)
-    k = blur_scale(n0, d0) * np.exp(rng.uniform(np.log(0.5), np.log(2.0)))
-    return ThinLens(F, F * F / (2 * k * (d - F) * PITCH), d, PITCH)
 
 
 # --------------------------------------------------------------- the check on a fit
