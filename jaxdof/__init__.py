@@ -12,6 +12,7 @@ from ._corrections import (
     edge_weight as edge_weight,
     footprint_prefilter as footprint_prefilter,
 )
+from ._exif import ExifLens as ExifLens, read_exif as read_exif
 from ._filters import (
     AbstractMethod as AbstractMethod,
     Aperture as Aperture,

@@ -30,21 +30,6 @@ def _x64_stays_on():
         pytest.fail("the test left jax_enable_x64 off; run float32 code on float32 arrays instead")
 
 
-@pytest.fixture
-def float32():
-    """Switches x64 off for one test: a mid-session flip, kept for the 13 tests that use it.
-
-    With x64 on and explicit float32 arrays nearly all of them pass as they are (measured on the
-    issue-19 baseline: one needs a float32 literal; one needs x64 really off, int32 indices, and
-    belongs in a subprocess); the flip stays until they are moved over.
-    """
-    jax.config.update("jax_enable_x64", False)
-    try:
-        yield
-    finally:
-        jax.config.update("jax_enable_x64", True)
-
-
 # The `slow` marker, from one list (tests/slow_tests.txt: file::function, with its provenance).
 _SLOW = frozenset(
     line.strip()

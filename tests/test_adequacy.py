@@ -1,5 +1,6 @@
 """The between-tile adequacy check (`jaxdof._fit.adequacy`): its distribution on linear problems,
-where it is exact, its power and inflation, the noise-free floor, masks, jit/vmap, and one fit."""
+where it is exact, its power and inflation, the noise-free floor, masks, jit/vmap, and the check
+inside `fit_lens` (status, inflated standard errors, the verdict in words)."""
 
 import jax
 import jax.numpy as jnp
@@ -234,21 +235,22 @@ def test_jit_and_vmap_agree_with_eager():
             np.testing.assert_allclose(float(batched[k][i]), float(eager[k]), rtol=1e-9)
 
 
-def test_float32_agrees_with_float64(float32):
-    """In float32 (x64 off) the statistic keeps about 4 digits: its sums of squares are formed
-    from tile factors, not from J^T J."""
+def test_float32_agrees_with_float64():
+    """On float32 inputs the statistic keeps about 4 digits: its sums of squares are formed
+    from tile factors, not from J^T J. The float64 reference sees the same (float32) values."""
     r, x, _, _ = linear_problem(jax.random.PRNGKey(12), tau=0.02)
-    with jax.enable_x64(True):
-        ref = adequacy(r.astype(jnp.float64), x.astype(jnp.float64), (1, H, W), grid=GRID)
-    out = adequacy(r, x, (1, H, W), grid=GRID, noise_floor=rounding_noise(jnp.full((H, W), 0.5)))
-    assert out["chi2"].dtype == jnp.float32
+    r, x = r.astype(jnp.float32), x.astype(jnp.float32)
+    ref = adequacy(r.astype(jnp.float64), x.astype(jnp.float64), (1, H, W), grid=GRID)
+    floor = rounding_noise(jnp.full((H, W), 0.5, jnp.float32))
+    out = adequacy(r, x, (1, H, W), grid=GRID, noise_floor=floor)
+    assert ref["chi2"].dtype == jnp.float64 and out["chi2"].dtype == jnp.float32
     for k in ("chi2", "p_value", "spread"):
         np.testing.assert_allclose(float(out[k]), float(ref[k]), rtol=1e-3)
     assert float(out["dof"]) == float(ref["dof"])
 
 
 # ---------------------------------------------------------------------------------------------
-# One fit end to end (the check is not wired into fit_lens yet: it runs on jax.jacfwd here).
+# The check inside fit_lens, end to end.
 # ---------------------------------------------------------------------------------------------
 
 S = 24
@@ -268,78 +270,79 @@ def slant_scene():
     return image, depth, rng
 
 
-@jax.jit
-def residual_and_jacobian(image, depth, target, y):
-    def residual(y):
-        lens = jaxdof.ThinLens(F, jnp.exp(y[0]), F + jnp.exp(y[1]), PITCH)
-        return (jaxdof.render(image, depth, lens, max_radius=WINDOW) - target).ravel()
-
-    return residual(y), jax.jacfwd(residual)(y)
-
-
-def fit_and_check(image, depth, target, truth, border=0):
-    # From the truth, one start: the check, not the search for the basin, is under test here.
-    # `border=0` by default: every pixel, as in the study's main table (fits/results/adequacy_border0.md).
+def fit_from_truth(image, depth, target, truth, border=0):
+    """`fit_lens` from the truth, one start (the check, not the search for the basin, is under
+    test), and its largest |error| / reported standard error over (N, d_f). `border=0` by
+    default: every pixel, as in the study's main table (fits/results/adequacy_border0.md)."""
     kw = dict(free=FREE, max_radius=WINDOW, starts=1, border=border)
     fit = jaxdof.fit_lens(image, depth, target, truth, **kw)
-    n, d_f = float(fit.lens.f_number), float(fit.lens.focus_distance)
-    y = jnp.array([np.log(n), np.log(d_f - F)])
-    r, jac = residual_and_jacobian(image, depth, target, y)
-    band = int(getattr(fit, "border", 0))  # the band the fit left out, where it has one
-    mask = np.zeros((S, S))
-    mask[band : S - band, band : S - band] = 1
-    extra = jnp.stack([r + jnp.asarray(target).ravel(), jnp.ones_like(r)], axis=1)
-    out = adequacy(
-        r,
-        jac,
-        (1, S, S),
-        mask[None],
-        band=band,
-        extra=extra,
-        noise_floor=rounding_noise(target, mask),
+    err = np.array(
+        [
+            float(fit.lens.f_number) - float(truth.f_number),
+            float(fit.lens.focus_distance) - float(truth.focus_distance),
+        ]
     )
-    err = np.array([n - float(truth.f_number), d_f - float(truth.focus_distance)])
     se = np.array([float(fit.stderr["f_number"]), float(fit.stderr["focus_distance"])])
-    return fit, out, np.max(np.abs(err) / se)
+    return fit, float(np.max(np.abs(err) / se))
 
 
-def _vignetted_fit(border):
+def vignetted_target(strength):
+    """The slant scene's soft render darkened towards the corners by `1 - strength rho^2` (rho = 1
+    in the corners: vignetting, which the model lacks), plus noise 0.003."""
     image, depth, rng = slant_scene()
     truth = jaxdof.ThinLens(F, 2.0, 1.6, PITCH)
     clean = np.asarray(jaxdof.render(image, depth, truth, max_radius=WINDOW))
-    rng.standard_normal(clean.shape)  # the noisy target's draw, as in the test below
+    noise = rng.standard_normal(clean.shape)
     yy, xx = np.mgrid[0:S, 0:S] - (S - 1) / 2
-    vignetted = clean * (1 - 0.5 * (yy**2 + xx**2) / (2 * ((S - 1) / 2) ** 2))
-    vignetted = vignetted + 0.003 * rng.standard_normal(clean.shape)
-    return fit_and_check(image, depth, vignetted, truth, border=border)
+    rho2 = (yy**2 + xx**2) / (2 * ((S - 1) / 2) ** 2)
+    return image, depth, clean * (1 - strength * rho2) + 0.003 * noise, truth
 
 
 @pytest.mark.xfail(
     strict=True,
-    reason="known gap (issue 20, the check not yet wired into fit_lens): since the fit's new focus "
-    "coordinate and border rule, the vignetted fit still fires, but its inflated standard errors "
-    "no longer cover the actual error on this scene (z / inflation 36.6 / 8.6 = 4.3)",
+    reason="known gap (issue 20): at 50 % corner darkening on a 24 x 24 slant the fit's N is 43 % "
+    "low while the tiles' spread (and the per-tile-exposure shift) explains a third of that: "
+    "|error| / inflated stderr 3.75 (fits/results/adequacy.md measures the coverage over scenes)",
 )
-def test_vignetting_inflation_covers_the_error():
-    fit, out, z = _vignetted_fit(0)
-    assert not bool(out["adequate"])
-    assert z / float(out["inflation"]) <= 3
+def test_strong_vignetting_inflation_covers_the_error():
+    image, depth, target, truth = vignetted_target(0.5)
+    fit, z = fit_from_truth(image, depth, target, truth)
+    assert fit.status == jaxdof.RESULTS.inconsistent
+    assert z <= 3
 
 
 def test_a_fit_the_model_explains_passes_and_vignetting_fires():
-    """On a slanted plane: a noisy soft render passes the check; the same render darkened
-    towards the corners (vignetting, which the model does not have) fires, and the standard
-    errors are inflated (their coverage: the xfail test above)."""
-    image, depth, rng = slant_scene()
-    truth = jaxdof.ThinLens(F, 2.0, 1.6, PITCH)
-    clean = np.asarray(jaxdof.render(image, depth, truth, max_radius=WINDOW))
-    noisy = clean + 0.003 * rng.standard_normal(clean.shape)
-    fit, out, z = fit_and_check(image, depth, noisy, truth)
-    assert bool(fit.success) and z < 4
-    assert bool(out["adequate"]) and float(out["inflation"]) == 1.0
-    yy, xx = np.mgrid[0:S, 0:S] - (S - 1) / 2
-    vignetted = clean * (1 - 0.5 * (yy**2 + xx**2) / (2 * ((S - 1) / 2) ** 2))
-    vignetted = vignetted + 0.003 * rng.standard_normal(clean.shape)
-    fit, out, z = fit_and_check(image, depth, vignetted, truth)
-    assert not bool(out["adequate"]) and float(out["p_value"]) < 1e-4
-    # (that its inflated errors cover the error: test_vignetting_inflation_covers_the_error)
+    """On a slanted plane: a noisy soft render passes the check (status successful, standard
+    errors from the noise); the same render darkened towards the corners (vignetting, which the
+    model does not have) fires: status `inconsistent`, success False, the standard errors
+    inflated to the tile spread, and the verdict in `message`, `summary` and `to_dict`."""
+    image, depth, target, truth = vignetted_target(0.0)
+    fit, z = fit_from_truth(image, depth, target, truth)
+    assert fit.status == jaxdof.RESULTS.successful and bool(fit.success) and z < 4
+    assert bool(fit.adequacy["adequate"]) and float(fit.adequacy["inflation"]) == 1.0
+    assert fit.stderr_kind == "noise" and fit.to_dict()["adequacy"]["adequate"] is True
+    _, _, target, _ = vignetted_target(0.5)
+    bad, _ = fit_from_truth(image, depth, target, truth)
+    assert bad.status == jaxdof.RESULTS.inconsistent and not bool(bad.success)
+    assert not bool(bad.adequacy["adequate"]) and float(bad.adequacy["p_value"]) < 1e-4
+    inflation = float(bad.adequacy["inflation"])
+    assert inflation > 1 and bad.stderr_kind == "tile spread"
+    # The covariance carries the inflation squared: its diagonal is the stderr squared.
+    np.testing.assert_allclose(
+        np.sqrt(np.diag(np.asarray(bad.covariance))),
+        [float(bad.stderr["f_number"]), float(bad.stderr["focus_distance"])],
+        rtol=1e-10,
+    )
+    assert "not consistent with the model" in bad.message and "inflated" in bad.message
+    summary = bad.to_dict()
+    assert summary["status"] == "inconsistent" and summary["stderr_kind"] == "tile spread"
+    assert "INCONSISTENT" in bad.summary()
+
+
+def test_moderate_vignetting_is_flagged_and_covered():
+    """Vignetting as in fits/adequacy.py (`1 - 0.3 rho^2`): flagged, and the inflated standard
+    errors cover the actual error (within 3)."""
+    image, depth, target, truth = vignetted_target(0.3)
+    fit, z = fit_from_truth(image, depth, target, truth)
+    assert fit.status == jaxdof.RESULTS.inconsistent
+    assert z <= 3

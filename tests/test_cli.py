@@ -16,7 +16,6 @@ import pathlib
 import re
 import subprocess
 import sys
-import types
 
 import imageio.v3 as iio
 import numpy as np
@@ -386,6 +385,15 @@ def _fit_result(focus, *, success=True):
         success=jnp.array(success),
         focus_power_stderr=jnp.full(n, 0.002),
         pixels_used=jnp.array(1000),
+        adequacy=dict(
+            chi2=jnp.array(30.0),
+            dof=jnp.array(34.0),
+            p_value=jnp.array(0.67),
+            tiles=jnp.array(9),
+            inflation=jnp.array(1.0),
+            spread=jnp.array(1.2),
+            adequate=jnp.array(True),
+        ),
         names=names,
         max_radius=4.0,
         border=3,
@@ -411,7 +419,8 @@ def test_fit_several_targets_output(capsys):
     text = capsys.readouterr().out
     assert "target far.npy:" in text and "4.5 m ± 0.03" in text and "converged" in text
     assert f"pixels used 1000 of {2 * H * W} (border 3 px)" in text
-    assert "standard errors" not in text  # the result does not say what kind
+    assert "model check: consistent (p = 0.67, 9 tiles); standard errors: noise" in text
+    assert obj["adequacy"]["adequate"] is True and obj["stderr_kind"] == "noise"
 
 
 def test_fit_output_focus_at_infinity(capsys):
@@ -428,12 +437,13 @@ def test_fit_output_focus_at_infinity(capsys):
     text = capsys.readouterr().out
     assert "recovered lens:" in text and "inf m" in text and "(held)" in text
     assert "pixels used 1000 (border 3 px)" in text and "did NOT converge (max_steps)" in text
-    kinds = types.SimpleNamespace(stderr_kind="sandwich")
-    assert report.stderr_kind(kinds) == "sandwich" and report.stderr_kind(object()) is None
-    adequacy = {"adequate": np.array(False), "inflation": np.array(2.5)}
-    assert "x2.5" in str(report.stderr_kind(types.SimpleNamespace(adequacy=adequacy)))
-    report.print_fit({**summary, "stderr_kind": "sandwich"}, ["far.npy"], [], as_json=False)
-    assert "standard errors: sandwich" in capsys.readouterr().out
+    # An inconsistent fit: the verdict and the inflated standard errors.
+    test = {**summary["adequacy"], "adequate": False, "p_value": 1e-9, "inflation": 2.5}
+    bad = {**summary, "status": "inconsistent", "adequacy": test, "stderr_kind": "tile spread"}
+    report.print_fit(bad, ["far.npy"], [], as_json=False)
+    text = capsys.readouterr().out
+    assert "model check: INCONSISTENT (p = 1e-09, 9 tiles)" in text
+    assert "standard errors: tile spread (noise x 2.5)" in text and "FAILED (inconsistent)" in text
 
 
 def test_render_focus_at_infinity(files, tmp_path):

@@ -111,7 +111,7 @@ def test_grid_render_float64():
     _grid_render_check(jnp.float64)
 
 
-def test_grid_render_float32(float32):
+def test_grid_render_float32():
     _grid_render_check(jnp.float32)
 
 
@@ -136,7 +136,7 @@ def test_grid_overlap_float64():
     _grid_overlap_check(jnp.float64)
 
 
-def test_grid_overlap_float32(float32):
+def test_grid_overlap_float32():
     _grid_overlap_check(jnp.float32)
 
 
@@ -163,16 +163,18 @@ def test_grid_filter_float64(method):
 
 
 @pytest.mark.parametrize("method", METHODS, ids=method_id)
-def test_grid_filter_float32(float32, method):
+def test_grid_filter_float32(method):
     _grid_filter_check(jnp.float32, method)
 
 
-def test_linearize_depth_finite_at_the_ends(float32):
+def test_linearize_depth_finite_at_the_ends():
     z = jnp.asarray([0.0, 1e-7, 0.5, 1 - 1e-7, 1.0], jnp.float32)
     g = jax.vmap(jax.grad(linearize_depth, argnums=(0, 1, 2)), in_axes=(0, None, None))(
         z, jnp.float32(0.1), jnp.float32(1000.0)
     )
-    assert _finite(linearize_depth(z, 0.1, 1000.0)) and _finite(g)
+    out = linearize_depth(z, 0.1, 1000.0)
+    assert out.dtype == jnp.float32 and all(x.dtype == jnp.float32 for x in g)
+    assert _finite(out) and _finite(g)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -272,8 +274,10 @@ def test_jit_render_error_under_vmap_grad_and_filter_jit():
         jax.block_until_ready(eqx.filter_jit(f)(bad))
 
 
-def test_jit_float32_render_raises(float32):
-    f = jax.jit(lambda d: render(jnp.ones((3, 4)), d, LENS, max_radius=2.0))
+def test_jit_float32_render_raises():
+    lens = ThinLens(*(np.float32(x) for x in (F, 2.0, 3.0, 6e-6)))
+    f = jax.jit(lambda d: render(jnp.ones((3, 4), jnp.float32), d, lens, max_radius=2.0))
+    assert f(jnp.full((3, 4), 2.0, jnp.float32)).dtype == jnp.float32
     with pytest.raises(RUNTIME, match="beyond the focal length"):
         jax.block_until_ready(f(jnp.full((3, 4), jnp.nan, jnp.float32)))
 

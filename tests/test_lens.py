@@ -319,10 +319,12 @@ def test_radius_from_focus_power():
     assert np.all(np.isnan(np.asarray(_signed_coc_radius_from_power(1.0, F, N, bad, P))))
 
 
-def test_infinity_focus_with_x64_off(float32):
-    lens = ThinLens(F, N, np.inf, P)
+def test_infinity_focus_float32():
+    lens = ThinLens(*(np.float32(x) for x in (F, N, np.inf, P)))
     assert lens.focus_distance.dtype == jnp.float32
-    depth = jnp.asarray([0.06, 3.0, jnp.inf])
-    np.testing.assert_allclose(coc_radius(depth, lens), [C / 0.06, C / 3.0, 0.0], rtol=3e-7)
+    depth = jnp.asarray([0.06, 3.0, jnp.inf], jnp.float32)
+    r = coc_radius(depth, lens)
+    assert r.dtype == jnp.float32
+    np.testing.assert_allclose(r, [C / 0.06, C / 3.0, 0.0], rtol=3e-7)
     g = jax.grad(lambda lens: jnp.sum(coc_radius(depth, lens)))(lens)
     assert all(np.isfinite(x) for x in jax.tree_util.tree_leaves(g)) and g.focus_distance == 0

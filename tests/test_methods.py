@@ -866,7 +866,7 @@ def test_layered_radius_gradient_is_exact_for_depth_planes(layered_path):
 @pytest.mark.parametrize(
     "method", [m for name, m in CATALOGUE.items() if name != "auto"], ids=method_id
 )
-def test_float32_in_float32_out(method, float32):
+def test_float32_in_float32_out(method):
     image, radius = _scene(10, 11)
     out = coc_filter(image.astype(np.float32), radius.astype(np.float32), method=method)
     assert out.dtype == jnp.float32 and out.shape == image.shape

@@ -208,7 +208,7 @@ def test_jit_and_vmap():
         np.testing.assert_allclose(batched[k], single, rtol=0, atol=1e-13)
 
 
-def test_float32(float32):
+def test_float32():
     depth, radius = two_depths(2.2, 1.3)
     out = _occ(IMAGE.astype(np.float32), radius.astype(np.float32), depth.astype(np.float32))
     assert out.dtype == jnp.float32 and np.all(np.isfinite(np.asarray(out)))

@@ -80,7 +80,7 @@ def test_ray_distance_to_z_analytic_plane(near_clip, shape):
     np.testing.assert_allclose(out, z, rtol=1e-13)
 
 
-def test_ray_distance_to_z_float32_and_inf(float32):
+def test_ray_distance_to_z_float32_and_inf():
     t = np.full((8, 10), 2.0, np.float32)
     t[0, 0] = np.inf  # no hit stays at infinity
     z = ray_distance_to_z(t, fov_x_deg=40.0)
@@ -204,6 +204,25 @@ def fit_fixture(name, *, edges):
     return res, truth
 
 
+def converged(res):
+    """The fit converged to a lens: `successful`, or `inconsistent` with that lens's errors
+    inflated. Ray-traced photos differ from the model by more than their Monte Carlo noise (the
+    pixel footprint, occlusion at edges: the adequacy test fires at p < 1e-30 on these crops),
+    so `inconsistent` is the honest verdict here; the lens and its inflated errors are what is
+    under test (`covered`)."""
+    return res.status in (jaxdof.RESULTS.successful, jaxdof.RESULTS.inconsistent)
+
+
+def covered(res, truth):
+    """The reported (where inconsistent, inflated) standard errors cover the actual errors of the
+    free fields within 3."""
+    z = [
+        abs(float(getattr(res.lens, k)) - float(getattr(truth, k))) / float(res.stderr[k])
+        for k in res.stderr
+    ]
+    return max(z) <= 3, z
+
+
 def within_goal(res, truth):
     """The issue's goal on ray-traced scenes: focus distance within 2%, blur scale within 5%."""
     fitted = res.lens
@@ -215,9 +234,10 @@ def within_goal(res, truth):
 def test_fit_recovers_raytraced_lens_without_depth_edges():
     # One slanted plane, circles 0.2-3.4 px (fits/raytraced.py: d_f +0.7%, K -0.1% on this crop).
     res, truth = fit_fixture("slant", edges=False)
-    assert bool(res.success), res.message
+    assert converged(res), res.message
     ok, df_err, k_err = within_goal(res, truth)
     assert ok, (df_err, k_err)
+    assert covered(res, truth)[0], covered(res, truth)
 
 
 def test_a_finer_input_recovers_the_smallest_blur_scale():
@@ -242,9 +262,10 @@ def test_a_finer_input_recovers_the_smallest_blur_scale():
             footprint=True,
             downsample=s,
         )
-    assert bool(fits[2].success), fits[2].message
+    assert converged(fits[2]), fits[2].message
     ok, df_err, k_err = within_goal(fits[2], truth)
     assert ok, (df_err, k_err)
+    assert covered(fits[2], truth)[0], covered(fits[2], truth)
     ok1, df1, k1 = within_goal(fits[1], truth)
     assert not ok1 and max(df1, k1) > 0.1, (df1, k1)  # the 1x input: far outside the goal
 
@@ -255,12 +276,15 @@ def test_edge_weight_removes_occlusion_bias():
     # with it the fit meets the goal (d_f +0.6%, K -4.7%: K's bias is the pixel footprint, see
     # fits/results/raytraced.md). The second fit reuses the first one's compilation.
     res, truth = fit_fixture("occluders", edges=True)
-    assert bool(res.success), res.message
+    assert converged(res), res.message
     ok, df_err, k_err = within_goal(res, truth)
     assert ok, (df_err, k_err)
+    assert covered(res, truth)[0], covered(res, truth)
     plain, _ = fit_fixture("occluders", edges=False)
     _, df_plain, _ = within_goal(plain, truth)
     assert df_plain > 0.05  # the bias the weight removes, well beyond the 2% goal
+    # ... and not silently: the adequacy test flags it (or its errors cover the miss).
+    assert not bool(plain.success) or covered(plain, truth)[0], plain.message
 
 
 def test_occlusion_render_closes_most_of_the_gap_at_depth_edges():
@@ -458,7 +482,7 @@ def test_footprint_prefilter_removes_the_blur_scale_bias_on_raytraced_slant():
     assert abs(corrected) < 0.015, corrected
 
 
-def test_footprint_prefilter_float32(float32):
+def test_footprint_prefilter_float32():
     # float32 in, float32 out, and the gradient in the radius is finite at the dead zone's edge
     # (r = 1/2, where kernel_variance's chord terms reach u = 1) and at r = 0.
     rng = np.random.default_rng(4)
@@ -470,9 +494,6 @@ def test_footprint_prefilter_float32(float32):
     g = jax.grad(lambda r: jnp.sum(footprint_prefilter(img, r) ** 2))(jnp.asarray(radius))
     assert g.dtype == jnp.float32 and bool(jnp.all(jnp.isfinite(g)))
     # against the float64 result: float32 rounding of O(1) values through a 5-point stencil
-    jax.config.update("jax_enable_x64", True)  # briefly; back off below, the fixture restores it
-    try:
-        ref = footprint_prefilter(img.astype(np.float64), radius.astype(np.float64))
-    finally:
-        jax.config.update("jax_enable_x64", False)
+    ref = footprint_prefilter(img.astype(np.float64), radius.astype(np.float64))
+    assert ref.dtype == jnp.float64
     np.testing.assert_allclose(np.asarray(out), np.asarray(ref), atol=2e-6)

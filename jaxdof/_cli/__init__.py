@@ -1,4 +1,5 @@
-"""The `jaxdof` command line: `demo`, `render` and `fit`, a thin layer over `_io` and the library.
+"""The `jaxdof` command line: `demo`, `render`, `fit` and `info`, a thin layer over `_io`,
+`_exif` and the library.
 
 `parse` builds the parser, `commands` runs a command, `report` prints results and progress,
 `plot` draws the figures, `demo` makes the demo's scene. Every problem with the user's files or
@@ -17,11 +18,11 @@ from collections.abc import Sequence
 
 from .._allocator import retain_freed_memory
 from .._io import InputError
-from .commands import run_demo, run_fit, run_render
+from .commands import run_demo, run_fit, run_info, run_render
 from .parse import build_parser
 
 
-_COMMANDS = {"demo": run_demo, "render": run_render, "fit": run_fit}
+_COMMANDS = {"demo": run_demo, "render": run_render, "fit": run_fit, "info": run_info}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,4 +1,5 @@
-"""The commands `demo`, `render` and `fit`: read and check the files, call the library, report.
+"""The commands `demo`, `render`, `fit` and `info`: read and check the files, call the library,
+report.
 
 The CLI checks what only it can know: the files (paths, shapes, an output over an input), the
 figure path, and combinations of its options. Everything about the values (a focus beyond the
@@ -18,11 +19,25 @@ import numpy as np
 
 import jaxdof
 
-from .._io import InputError, check_output, read_depth, read_image, write_image
+from .._exif import ExifLens, read_exif
+from .._io import (
+    _FORMATS,
+    InputError,
+    _read_raw,
+    _suffix,
+    check_output,
+    read_depth,
+    read_image,
+    write_image,
+)
 from .._render import _check_downsample
 from . import plot, report
 from .demo import demo_scene
 from .report import note
+
+
+FULL_FRAME_WIDTH = 0.036  # m: the default --sensor-width
+EXIF_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png")  # the readable files that hold EXIF
 
 
 @contextlib.contextmanager
@@ -67,14 +82,10 @@ def _photo_width(args, image_shape) -> int:
     return image_shape[1] // s
 
 
-def _lens(args, focus: float, width: int):
+def _lens(focal_length: float, f_number: float, focus: float, sensor_width: float, width: int):
     with library_checks():  # e.g. a focus distance not beyond the focal length
         return jaxdof.ThinLens.from_sensor(
-            args.focal_length,
-            args.f_number,
-            focus,
-            sensor_width=args.sensor_width,
-            image_width=width,
+            focal_length, f_number, focus, sensor_width=sensor_width, image_width=width
         )
 
 
@@ -86,7 +97,9 @@ def run_render(args) -> int:
     inputs = [args.image, args.depth]
     img, depth = _read_inputs(args)
     check_output(args.out, inputs)
-    lens = _lens(args, args.focus, _photo_width(args, img.array.shape))
+    width = _photo_width(args, img.array.shape)
+    sensor_width = FULL_FRAME_WIDTH if args.sensor_width is None else args.sensor_width
+    lens = _lens(args.focal_length, args.f_number, args.focus, sensor_width, width)
     t0 = time.perf_counter()
     with library_checks():  # e.g. depths not beyond the focal length
         out = jaxdof.render(
@@ -169,6 +182,99 @@ def _read_weight(path: str, photo: tuple[int, ...]) -> np.ndarray:
     return w
 
 
+def _photo_exif(args) -> ExifLens | None:
+    """The first TARGET's EXIF lens fields: `None` with `--no-exif`, for a file that holds no
+    EXIF (`.npy`), or when it has no lens fields. Its pixels were read already, so metadata that
+    cannot be parsed is a note, and the fit goes on without it."""
+    path = args.targets[0]
+    if args.no_exif or _suffix(path) not in EXIF_SUFFIXES:
+        return None
+    try:
+        exif = read_exif(path)
+    except ValueError as err:
+        note(f"{err}; its EXIF is not used")
+        return None
+    for n in exif.notes:
+        note(n)
+    return exif if exif.has_lens else None
+
+
+def _start(
+    args, depth: np.ndarray, photo: tuple[int, ...]
+) -> tuple[dict[str, float], dict[str, Any] | None]:
+    """The fit's starting lens, `{focal_length, f_number, focus_distance, sensor_width}` (SI), and
+    the `--json` `"exif"` object (`None` when no EXIF lens fields were read).
+
+    Each value is the option's when given, else the first TARGET's EXIF value where it has one,
+    else the default (f/4, the median depth of the scene, a 36 mm sensor width); the focal length
+    has no default. What EXIF said and what of it was used goes on stderr in one line.
+    """
+    exif = _photo_exif(args)
+    given = {
+        "focal_length": args.focal_length,
+        "f_number": args.f_number,
+        "focus_distance": args.focus,
+        "sensor_width": args.sensor_width,
+    }
+    read: dict[str, float] = {}  # the usable EXIF values
+    if exif is not None:
+        found = {
+            "focal_length": exif.focal_length,
+            "f_number": exif.f_number,
+            "focus_distance": exif.focus_distance,
+            "sensor_width": exif.sensor_width(photo[1], photo[0]),
+        }
+        read = {name: value for name, value in found.items() if value is not None}
+    focal_length: float | None = given["focal_length"] or read.get("focal_length")
+    if focal_length is None:
+        why = "--no-exif" if args.no_exif else f"{args.targets[0]} has no EXIF FocalLength"
+        raise InputError(
+            f"the starting focal length is unknown ({why}): give --focal-length, e.g. 50mm"
+        )
+    focus = read.get("focus_distance")
+    if given["focus_distance"] is None and focus is not None and focus <= focal_length:
+        note(
+            f"{args.targets[0]}: EXIF SubjectDistance {focus:g} m is not beyond the focal length "
+            f"{focal_length * 1e3:g} mm; not used"
+        )
+        del read["focus_distance"]
+    defaults: dict[str, float] = {
+        "focal_length": focal_length,
+        "f_number": 4.0,
+        "focus_distance": float(np.median(depth)),
+        "sensor_width": FULL_FRAME_WIDTH,
+    }
+
+    def pick(name: str) -> float:
+        value = given[name]
+        if value is not None:
+            return value
+        return read[name] if name in read else defaults[name]
+
+    values = {name: pick(name) for name in given}
+    if exif is None:
+        return values, None
+    used = [name for name in read if given[name] is None]
+    overridden = [name for name in read if given[name] is not None]
+    if "sensor_width" in used and exif.pixel_pitch is not None and exif.pixel_dimensions:
+        if tuple(exif.pixel_dimensions) != (photo[1], photo[0]):
+            w, h = exif.pixel_dimensions
+            note(
+                f"{args.targets[0]}: the EXIF describes a {w}x{h} (WxH) image, the file is "
+                f"{photo[1]}x{photo[0]}: the sensor width assumes the photo was resized, not "
+                "cropped (give --sensor-width for a crop)"
+            )
+    note(report.exif_line(args.targets[0], exif, read, used, overridden, args.free))
+    summary = {
+        "file": args.targets[0],
+        **exif.to_dict(),
+        "sensor_width": read.get("sensor_width"),
+        "used": used,
+        "overridden": overridden,
+    }
+    return values, summary
+
+
 @dataclasses.dataclass
 class FitCall:
     """What `run_fit` hands `jaxdof.fit_lens`: `fit_lens(*positional, **kwargs)`, from the files
@@ -180,6 +286,7 @@ class FitCall:
     init: jaxdof.ThinLens
     kwargs: dict[str, Any]
     model: dict[str, Any]
+    exif: dict[str, Any] | None = None  # the first TARGET's EXIF lens fields: `_start`
 
     @property
     def positional(self) -> tuple:
@@ -201,8 +308,14 @@ def fit_call(args) -> FitCall:
     weight = None if args.weight is None else _read_weight(args.weight, targets[0].shape)
     _check_free(args.free, args.shared, len(targets))
     plot.check_plot(args.plot, _fit_inputs(args), "--plot")
-    focus = args.focus if args.focus is not None else float(np.median(depth))
-    init = _lens(args, focus, width)
+    start, exif = _start(args, depth, targets[0].shape)
+    init = _lens(
+        start["focal_length"],
+        start["f_number"],
+        start["focus_distance"],
+        start["sensor_width"],
+        width,
+    )
     model = dict(method=args.method, footprint=args.footprint, downsample=args.downsample)
     kwargs = dict(
         free=tuple(args.free),
@@ -214,7 +327,7 @@ def fit_call(args) -> FitCall:
         verbose=False if args.quiet else report.Progress(),
         **model,
     )
-    return FitCall(img.array, depth, targets, init, kwargs, model)
+    return FitCall(img.array, depth, targets, init, kwargs, model, exif)
 
 
 def run_fit(args) -> int:
@@ -222,6 +335,8 @@ def run_fit(args) -> int:
     with library_checks():  # e.g. --shared not within --free, or the data cannot decide the lens
         result = jaxdof.fit_lens(*call.positional, **call.kwargs)
     summary = report.fit_summary(result)
+    if call.exif is not None:
+        summary["exif"] = call.exif
     pixels = len(call.targets) * int(np.prod(call.targets[0].shape[:2]))
     report.print_fit(summary, args.targets, args.free, as_json=args.json, pixels=pixels)
     if args.plot:
@@ -237,6 +352,54 @@ def run_fit(args) -> int:
         )
         note(f"wrote {args.plot}")
     return 0 if summary["success"] else 1
+
+
+# ----------------------------------------------------------------------------------------------
+# info
+
+
+def describe(path: str) -> dict[str, Any]:
+    """`info`'s object for `path`: what `read_image` reads (the stored array: size, channels,
+    type, the colour encoding it is decoded with) and the file's EXIF lens fields."""
+    raw = _read_raw(path, "image", "FILE")
+    suffix = _suffix(path)
+    h, w = raw.shape[:2]
+    channels = 1 if raw.ndim == 2 else int(raw.shape[-1])
+    if raw.dtype in (np.uint8, np.uint16):
+        encoding = "sRGB"
+    elif raw.dtype.kind == "f":
+        encoding = "linear"
+    else:
+        encoding = "unsupported"  # read_image refuses it
+    out: dict[str, Any] = {
+        "file": path,
+        "format": suffix[1:].upper() if suffix in (".npy", ".npz") else _FORMATS[suffix][0],
+        "width": int(w),
+        "height": int(h),
+        "channels": channels,
+        "colour": {1: "grey", 2: "grey+alpha", 3: "RGB", 4: "RGBA"}.get(channels, "other"),
+        "alpha": channels in (2, 4),
+        "dtype": raw.dtype.name,
+        "bits": 8 * raw.dtype.itemsize,
+        "encoding": encoding,
+        "exif": None,
+    }
+    if suffix in EXIF_SUFFIXES:
+        try:
+            exif = read_exif(path)
+        except ValueError as err:  # the pixels were read: the metadata alone is unreadable
+            note(f"{err}; EXIF left out")
+            return out
+        for n in exif.notes:
+            note(n)
+        if exif.source:
+            out["exif"] = {**exif.to_dict(), "sensor_width": exif.sensor_width(w, h)}
+    return out
+
+
+def run_info(args) -> int:
+    report.print_info(describe(args.file), as_json=args.json)
+    return 0
 
 
 # ----------------------------------------------------------------------------------------------

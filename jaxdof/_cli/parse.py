@@ -131,26 +131,36 @@ def parse_nonnegative(text: str) -> float:
 
 def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
     what = "starting " if start else ""
+    exif = "the first TARGET's EXIF " if start else ""
     g = p.add_argument_group(
         "lens" + (" (the starting point of the fit)" if start else ""),
         "Lengths take a unit: mm, cm or m (a bare number is metres; --focal-length 50 is refused).\n"
         "--focus also takes inf (or infinity): focused at infinity, printed as inf in text and\n"
-        "as null in --json.",
+        "as null in --json."
+        + (
+            "\nUnset, each comes from the first TARGET's EXIF metadata where it has it (FocalLength,\n"
+            "FNumber, SubjectDistance, and the sensor width from FocalPlaneXResolution or\n"
+            "FocalLengthIn35mmFilm), else from its default; --no-exif ignores the metadata."
+            if start
+            else ""
+        ),
     )
     g.add_argument(
         "--focal-length",
         type=parse_focal_length,
-        required=True,
+        required=not start,
+        default=None,
         metavar="LEN",
-        help=f"{what}focal length, e.g. 50mm",
+        help=f"{what}focal length, e.g. 50mm" + (f" (default: {exif}FocalLength)" if start else ""),
     )
     g.add_argument(
         "--f-number",
         type=parse_positive,
         required=not start,
-        default=4.0 if start else None,
+        default=None,
         metavar="N",
-        help=f"{what}f-number N = f/D, e.g. 2" + (" (default 4)" if start else ""),
+        help=f"{what}f-number N = f/D, e.g. 2"
+        + (f" (default: {exif}FNumber, else 4)" if start else ""),
     )
     g.add_argument(
         "--focus",
@@ -159,14 +169,20 @@ def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
         default=None,
         metavar="LEN",
         help=f"{what}focus distance, e.g. 3m, or inf"
-        + (" (default: the median depth of the scene)" if start else ""),
+        + (
+            f" (default: {exif}SubjectDistance, else the median depth of the scene)"
+            if start
+            else ""
+        ),
     )
     g.add_argument(
         "--sensor-width",
         type=parse_length,
-        default=0.036,
+        default=None,
         metavar="LEN",
-        help="sensor width spanned by the image's columns (default 36mm, full frame)",
+        help="sensor width spanned by the image's columns (default "
+        + (f"from {exif}where it says, else " if start else "")
+        + "36mm, full frame)",
     )
 
 
@@ -262,6 +278,17 @@ examples:
 From one photo only the blur scale K = f^2/(2N(d_f - f))/pitch and the focus distance can be
 measured, so by default --free is f_number focus_distance with the focal length held; a focus
 bracket (several photos, --shared focal_length f_number) also determines the focal length.
+
+A camera's photo says its lens in its EXIF metadata: the lens options left unset come from the
+first TARGET's (focal length, f-number, focus distance, sensor width), and a line on stderr (and
+"exif" in --json) says what was read and used; options given override it, --no-exif ignores it.
+  jaxdof fit sharp.png depth.tif photo.jpg          # the focal length from EXIF, held
+"""
+
+_EPILOG_INFO = """\
+examples:
+  jaxdof info photo.jpg
+  jaxdof info photo.tif --json
 """
 
 _EPILOG_DEMO = """\
@@ -371,12 +398,38 @@ def _add_fit(sub) -> None:
     )
     fit.add_argument("--plot", metavar="PNG", help="write a comparison figure (needs matplotlib)")
     fit.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    fit.add_argument(
+        "--no-exif",
+        action="store_true",
+        help="ignore the first TARGET's EXIF metadata: start from the lens options and their "
+        "defaults alone (--focal-length is then required)",
+    )
     _add_lens_options(fit, start=True)
     _add_file_options(fit)
 
 
+def _add_info(sub) -> None:
+    info = sub.add_parser(
+        "info",
+        help="print what jaxdof reads from an image file: size, channels, encoding, EXIF lens",
+        description="Print what jaxdof reads from FILE: its size, channels, bit depth and type, "
+        "the colour encoding it is read with (integers as sRGB, floats as linear light), and "
+        "the lens fields of its EXIF metadata (focal length, f-number, focus distance, pixel "
+        "pitch), which `fit` starts from.",
+        epilog=_EPILOG_INFO,
+        formatter_class=_FORMAT,
+    )
+    info.add_argument("file", metavar="FILE", help="image file (PNG, TIFF, JPEG, .npy, .npz)")
+    info.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object on stdout (SI units; an infinite focus distance is null, "
+        "with focus_power 0)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The `jaxdof` parser; `args.command` names the command (`demo`, `render` or `fit`)."""
+    """The `jaxdof` parser; `args.command` names the command (`demo`, `render`, `fit`, `info`)."""
     from .. import __version__
 
     parser = Parser(
@@ -392,4 +445,5 @@ def build_parser() -> argparse.ArgumentParser:
     _add_demo(sub)
     _add_render(sub)
     _add_fit(sub)
+    _add_info(sub)
     return parser

@@ -1,9 +1,11 @@
-"""What the CLI prints: a fit as text or JSON, the demo's table, and the solver's progress."""
+"""What the CLI prints: a fit as text or JSON, a file's `info`, the EXIF a fit starts from, the
+demo's table, and the solver's progress."""
 
 from __future__ import annotations
 
 import json
 import sys
+import types
 
 import jax
 import numpy as np
@@ -29,39 +31,31 @@ def _stderr_dict(stderr: dict, index: int | None) -> dict:
     return out
 
 
-def stderr_kind(result) -> str | None:
-    """What the standard errors are, in words, when the `FitResult` says (`stderr_kind`, or the
-    model-adequacy test's verdict in `adequacy`); `None` when it does not."""
-    kind = getattr(result, "stderr_kind", None)
-    if kind is not None:
-        return str(getattr(kind, "name", kind))
-    test = getattr(result, "adequacy", None)
-    if isinstance(test, dict) and "adequate" in test:
-        if bool(np.all(np.asarray(test["adequate"]))):
-            return "from the pixel noise (the model explains every tile)"
-        inflation = float(np.max(np.asarray(test.get("inflation", np.nan))))
-        return (
-            f"inflated x{inflation:.3g} to the tile spread (the model does not explain every tile)"
-        )
-    return None
-
-
 def fit_summary(result) -> dict:
-    """The `fit --json` object of a `FitResult`; the text output reads it too.
-
-    `FitResult.to_dict()`: lens 0's fields, `stderr`, `focus_power` and `focus_power_stderr` at
-    the top level (a single photo's fit reads as one lens), then `success`, `status`, `message`,
-    `steps`, `loss`, `sigma`, `condition`, `max_radius`, `pixels_used`, `border`, `levels`,
-    `names`, `covariance`, `gain`, `offset`, and `lenses` with one entry per photo; plus
-    `stderr_kind` when the result says what its standard errors are. SI units; a value that is
-    not finite (a standard error the data cannot determine, a focus distance at infinity) is
-    `null`.
+    """The `fit --json` object of a `FitResult` (`FitResult.to_dict()`); the text output reads
+    it too: lens 0's fields, `stderr`, `focus_power` and `focus_power_stderr` at the top level (a
+    single photo's fit reads as one lens), then `success`, `status`, `message`, `steps`, `loss`,
+    `sigma`, `condition`, `max_radius`, `pixels_used`, `border`, `levels`, `adequacy` (the
+    model-adequacy test), `stderr_kind`, `names`, `covariance`, `gain`, `offset`, and `lenses`
+    with one entry per photo. SI units; a value that is not finite (a standard error the data
+    cannot determine, a focus distance at infinity) is `null`.
     """
-    summary = result.to_dict()
-    kind = stderr_kind(result)
-    if kind is not None and "stderr_kind" not in summary:
-        summary["stderr_kind"] = kind
-    return summary
+    return result.to_dict()
+
+
+def _adequacy_line(summary: dict) -> str | None:
+    """The model check's verdict and what the standard errors are, in words."""
+    test = summary.get("adequacy")
+    if not test or test.get("p_value") is None:
+        return None
+    verdict = "consistent" if test["adequate"] else "INCONSISTENT"
+    kind = summary.get("stderr_kind", "noise")
+    if kind == "tile spread":
+        kind = f"tile spread (noise x {test['inflation']:.3g})"
+    return (
+        f"model check: {verdict} (p = {test['p_value']:.3g}, {test['tiles']:g} tiles); "
+        f"standard errors: {kind}"
+    )
 
 
 def format_value(name: str, v, err=None) -> str:
@@ -80,8 +74,8 @@ def print_fit(
     summary: dict, target_names: list[str], free, *, as_json: bool, pixels: int | None = None
 ) -> None:
     """A `fit_summary` on stdout: one JSON object, or a block per lens, the pixels fitted (of
-    `pixels`, the photos' total, when given), what the standard errors are, and a verdict line
-    (with the status's name when the fit failed)."""
+    `pixels`, the photos' total, when given), the model check and what the standard errors are,
+    and a verdict line (with the status's name when the fit failed)."""
     if as_json:
         print(json.dumps(summary, indent=2))
         return
@@ -94,14 +88,130 @@ def print_fit(
             print(f"  {name:15s} {value}{state}")
     of = f" of {pixels}" if pixels is not None else ""
     print(f"pixels used {summary['pixels_used']}{of} (border {summary['border']} px)")
-    if summary.get("stderr_kind") is not None:
-        print(f"standard errors: {summary['stderr_kind']}")
-    verdict = "converged" if summary["success"] else f"did NOT converge ({summary['status']})"
+    line = _adequacy_line(summary)
+    if line is not None:
+        print(line)
+    status = summary["status"]
+    if summary["success"]:
+        verdict = "converged"
+    elif status == "max_steps":
+        verdict = "did NOT converge (max_steps)"
+    else:
+        verdict = f"FAILED ({status})"
     loss = summary["loss"]
     print(
         f"{verdict} after {summary['steps']} steps, "
         f"loss {'nan' if loss is None else format(loss, '.4g')}: {summary['message']}"
     )
+
+
+# ----------------------------------------------------------------------------------------------
+# EXIF and `info`
+
+
+def _mm(metres: float) -> str:
+    return f"{metres * 1e3:.4g} mm"
+
+
+def _camera(exif) -> str:
+    """`Make Model, lens LensModel` as far as known (`Model` often repeats `Make`)."""
+    make, model = exif.make or "", exif.model or ""
+    name = model if make and model.lower().startswith(make.lower()) else f"{make} {model}".strip()
+    lens = f"lens {exif.lens_model}" if exif.lens_model else ""
+    return ", ".join(x for x in (name, lens) if x)
+
+
+def _sensor_source(exif) -> str:
+    return (
+        "the focal-plane resolution"
+        if exif.pixel_pitch is not None
+        else "the 35 mm-equivalent focal length"
+    )
+
+
+def exif_line(path: str, exif, read: dict, used: list[str], overridden: list[str], free) -> str:
+    """`fit`'s one stderr line on the first TARGET's EXIF: the values read, which of them start
+    the fit, and which the command line overrides (`read`: the usable values, SI)."""
+    parts = []
+    if "focal_length" in read:
+        equivalent = exif.focal_length_35mm
+        parts.append(
+            f"focal length {_mm(read['focal_length'])}"
+            + (f" (35 mm equivalent {_mm(equivalent)})" if equivalent else "")
+        )
+    if "f_number" in read:
+        parts.append(f"f/{read['f_number']:.3g}")
+    if "focus_distance" in read:
+        parts.append(f"focus {format_value('focus_distance', read['focus_distance'])}")
+    if "sensor_width" in read:
+        parts.append(f"sensor width {_mm(read['sensor_width'])} (from {_sensor_source(exif)})")
+    camera = _camera(exif)
+    head = f"{path}: EXIF" + (f" {camera}" if camera else "") + ": "
+    if not parts:
+        return head + "no focal length, f-number, focus distance or sensor size to start from"
+    tail = []
+    if used:
+        names = ", ".join("f-number" if n == "f_number" else n.replace("_", " ") for n in used)
+        held = ""
+        if "focal_length" in used:
+            held = " (focal length free)" if "focal_length" in free else " (focal length held)"
+        tail.append(f"the fit starts from its {names}{held}")
+    if overridden:
+        options = {
+            "focal_length": "--focal-length",
+            "f_number": "--f-number",
+            "focus_distance": "--focus",
+            "sensor_width": "--sensor-width",
+        }
+        tail.append("overridden by " + ", ".join(options[n] for n in overridden))
+    return head + ", ".join(parts) + "; " + "; ".join(tail)
+
+
+def print_info(info: dict, *, as_json: bool) -> None:
+    """`info`'s object (`commands.describe`) on stdout: one JSON object, or a few lines."""
+    if as_json:
+        print(json.dumps(info, indent=2))
+        return
+    bits = f"{info['bits']}-bit {'float' if info['dtype'].startswith('float') else 'integer'}"
+    print(
+        f"{info['file']}: {info['format']}, {info['width']} x {info['height']} pixels (W x H), "
+        f"{info['channels']} channel{'s' if info['channels'] > 1 else ''} ({info['colour']}), "
+        f"{info['dtype']} ({bits})"
+    )
+    encoding = {
+        "sRGB": "sRGB: decoded to linear light when read (--linear takes it as linear)",
+        "linear": "linear light, as stored",
+        "unsupported": f"{info['dtype']} pixels are not read (8/16-bit integers or floats)",
+    }[info["encoding"]]
+    print(f"  {'encoding':16s}{encoding}" + ("; alpha ignored" if info["alpha"] else ""))
+    exif = info["exif"]
+    if exif is None:
+        print(f"  {'EXIF':16s}none (no lens fields)")
+        return
+    camera = _camera(types.SimpleNamespace(**exif))
+    print(f"  {'EXIF':16s}{camera or 'no camera name'}")
+
+    def field(label: str, text: str | None) -> None:
+        print(f"  {label:16s}{text if text is not None else 'not recorded'}")
+
+    f, f35 = exif["focal_length"], exif["focal_length_35mm"]
+    focal = None if f is None else _mm(f) + (f" (35 mm equivalent {_mm(f35)})" if f35 else "")
+    field("focal length", focal if f is not None or f35 is None else f"35 mm equivalent {_mm(f35)}")
+    field("f-number", None if exif["f_number"] is None else f"{exif['f_number']:.3g}")
+    power = exif["focus_power"]
+    field(
+        "focus distance",
+        None if power is None else format_value("focus_distance", exif["focus_distance"]),
+    )
+    pitch = exif["pixel_pitch"]
+    field("pixel pitch", None if pitch is None else f"{pitch * 1e6:.4g} µm")
+    width = exif["sensor_width"]
+    source = _sensor_source(types.SimpleNamespace(**exif))
+    field("sensor width", None if width is None else f"{_mm(width)} (from {source})")
+
+
+# ----------------------------------------------------------------------------------------------
+# The demo
 
 
 def print_demo(truth, start, result) -> None:

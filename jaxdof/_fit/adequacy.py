@@ -118,6 +118,12 @@ def tile_grid(
     return ty, tx
 
 
+def _nonzero(mask: AnyFloatLike) -> Array:
+    """`mask != 0` as a boolean array (a boolean mask as it is: no bool/int promotion)."""
+    mask = jnp.asarray(mask)
+    return mask if mask.dtype == bool else mask != 0
+
+
 def rounding_noise(targets: AnyFloatLike, mask: AnyFloatLike | None = None) -> Array:
     """A floor for the noise standard deviation at the rounding level of the targets.
 
@@ -130,7 +136,7 @@ def rounding_noise(targets: AnyFloatLike, mask: AnyFloatLike | None = None) -> A
     targets = jnp.asarray(targets)
     if not jnp.issubdtype(targets.dtype, jnp.floating):
         targets = targets.astype(float)
-    keep = jnp.ones(targets.shape, bool) if mask is None else jnp.asarray(mask) != 0
+    keep = jnp.ones(targets.shape, bool) if mask is None else _nonzero(mask)
     keep = jnp.broadcast_to(keep, targets.shape)
     count = jnp.maximum(jnp.sum(keep), 1).astype(targets.dtype)
     rms = jnp.sqrt(jnp.sum(jnp.where(keep, targets * targets, 0)) / count)
@@ -229,7 +235,7 @@ def _tiled(
     shape, c, cols, (ty, tx), band = _check_layout(residual, jac, shape, used, grid, band)
     t, h, w = shape[:3]
     dtype = residual.dtype
-    keep = jnp.ones(shape, bool) if mask is None else jnp.asarray(mask) != 0
+    keep = jnp.ones(shape, bool) if mask is None else _nonzero(mask)
     keep = jnp.broadcast_to(keep, shape).reshape(t, h, w, c)
     r = jnp.where(keep, residual.reshape(t, h, w, c), 0)
     p = len(cols)
@@ -281,6 +287,26 @@ def _tile_sums(f: _Factors, jt: Array, rt: Array, xt: Array | None) -> tuple[Arr
     return jnp.sum(jnp.where(kept_a, ca * ca, 0)), jnp.sum(kept_a).astype(dtype)
 
 
+def _exposure_shift(f: _Factors, jt: Array, rt: Array, xt: Array | None) -> Array:
+    """`(p,)`: how far the lens moves when every tile has its own `extra` columns (exposure) and
+    all share one lens, one Gauss-Newton step from the pooled solution (unit-column coordinates):
+    `d = -(sum_k P_k)^+ sum_k s_k`, with `P_k`, `s_k` the tile's information and score after
+    projecting out its own `extra` columns. Photometric model error that is a smooth gain over the
+    photo (vignetting) biases the pooled lens while each tile, with its own gain, is nearly
+    unbiased: `d` is then the bias itself. Zeros without `extra`."""
+    p = jt.shape[2]
+    if xt is None:
+        return jnp.zeros((p,), jt.dtype)
+    ux, sx, _ = jnp.linalg.svd(xt, full_matrices=False)  # (K, m, E)
+    ux = jnp.where((sx > f.tol)[:, None, :], ux, 0)
+    jp = jt - jnp.einsum("kme,ken->kmn", ux, jnp.einsum("kme,kmn->ken", ux, jt))
+    rp = rt - jnp.einsum("kme,ke->km", ux, jnp.einsum("kme,km->ke", ux, rt))
+    # The stacked projected tiles: their SVD gives (sum_k P_k)^+ without squaring them.
+    u, s, vt = jnp.linalg.svd(jp.reshape(-1, p), full_matrices=False)
+    inv = jnp.where(s > f.tol, 1 / jnp.where(s > f.tol, s, 1), 0)
+    return -(vt.T * inv[None, :]) @ (u.T @ rp.reshape(-1))
+
+
 def _noise_variance(
     ssr: Array,
     q_tiles: Array,
@@ -314,10 +340,17 @@ def _p_value(chi2: Array, dof: Array, dof_noise: Array, *, known: bool) -> Array
 
 
 def _spread(
-    f: _Factors, var: Array, ssr: Array, n: Array, chi2_num: Array, safe_dof: Array
+    f: _Factors,
+    var: Array,
+    ssr: Array,
+    n: Array,
+    chi2_num: Array,
+    safe_dof: Array,
+    shift: Array,
 ) -> Array:
-    """The tile-spread factor `s >= 1`: `s^2 V_fit >= V_fit + Omega` in every direction, and at
-    least the Birge ratio; 1 with fewer than 2 informative tiles or a zero residual."""
+    """The tile-spread factor `s >= 1`: `s^2 V_fit >= V_fit + Omega + d d^T` in every direction
+    (`d` the exposure `shift`), and at least the Birge ratio; 1 with fewer than 2 informative
+    tiles or a zero residual."""
     dtype = ssr.dtype
     p = f.vt.shape[2]
     # The tile spread. Tile scores at the linearised exact solution: g_k = b_k - A_k A^+ b.
@@ -337,7 +370,7 @@ def _spread(
     kron = jnp.einsum("kab,kcd->acbd", a_k, a_k).reshape(p * p, p * p)
     omega = (jnp.linalg.pinv(kron) @ rhs.reshape(-1)).reshape(p, p)
     ev, evec = jnp.linalg.eigh(0.5 * (omega + omega.T))
-    omega = (evec * jnp.maximum(ev, 0)[None, :]) @ evec.T
+    omega = (evec * jnp.maximum(ev, 0)[None, :]) @ evec.T + jnp.outer(shift, shift)
     # V_fit = var_fit A^+ (what the fit reports). The largest eigenvalue of
     # V_fit^{-1/2} Omega V_fit^{-1/2}, in the basis of A's singular vectors: S V^T Omega V S.
     var_fit = ssr / jnp.maximum(n - f.rank, 1)
@@ -420,7 +453,8 @@ def adequacy(
     chi2 = jnp.where(var > 0, chi2_num / jnp.where(var > 0, var, 1), 0)
     p_value = _p_value(chi2, dof, dof_noise, known=sigma2 is not None)
     adequate = p_value >= alpha
-    spread = _spread(f, var, ssr, n, chi2_num, jnp.maximum(dof, 1))
+    shift = _exposure_shift(f, jt, rt, xt)
+    spread = _spread(f, var, ssr, n, chi2_num, jnp.maximum(dof, 1), shift)
     return dict(
         chi2=chi2,
         dof=dof,

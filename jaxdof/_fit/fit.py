@@ -65,7 +65,7 @@ _SOLVER_ERRORS = (eqx.EquinoxRuntimeError, jax.errors.JaxRuntimeError, FloatingP
 _NEAR_INFINITY = 1e-3
 
 
-_SUCCESSFUL, _MAX_STEPS, _DEAD_ZONE, _DEGENERATE, _WINDOW, _AMBIGUOUS = (
+_SUCCESSFUL, _MAX_STEPS, _DEAD_ZONE, _DEGENERATE, _WINDOW, _AMBIGUOUS, _INCONSISTENT = (
     code_of(s)
     for s in (
         RESULTS.successful,
@@ -74,6 +74,7 @@ _SUCCESSFUL, _MAX_STEPS, _DEAD_ZONE, _DEGENERATE, _WINDOW, _AMBIGUOUS = (
         RESULTS.degenerate,
         RESULTS.window,
         RESULTS.ambiguous,
+        RESULTS.inconsistent,
     )
 )
 
@@ -374,18 +375,30 @@ def _infinity_notes(result: FitResult, spec) -> list[str]:
     return notes
 
 
+def _inconsistency_note(result: FitResult) -> str:
+    """The adequacy test's numbers, in words, for a fit it found inconsistent."""
+    a = {k: float(np.asarray(v)) for k, v in result.adequacy.items()}
+    return (
+        f"{a['tiles']:g} tiles of the photo disagree on the lens beyond their noise (chi2 "
+        f"{a['chi2']:.4g} on {a['dof']:g} dof, p = {a['p_value']:.2g}): stderr inflated "
+        f"{a['inflation']:.3g}x to their spread"
+    )
+
+
 def _verdict(run: _Run, result: FitResult, info, r_final, window, notes, allow_degenerate):
     """The final status (ambiguity and window found on the host), the notes, and the
     `ValueError` for a free set the data cannot determine (unless `allow_degenerate`)."""
     p = run.problem
     spec = p.spec
     code = code_of(info["status"])
-    alt = _ambiguity(info, p) if code == _SUCCESSFUL else None
+    if code == _INCONSISTENT:
+        notes.append(_inconsistency_note(result))
+    alt = _ambiguity(info, p) if code in (_SUCCESSFUL, _INCONSISTENT) else None
     if alt is not None:
         code = _AMBIGUOUS
         notes.append(alt)
     if r_final > window:
-        code = _WINDOW if code == _SUCCESSFUL else code
+        code = _WINDOW if code in (_SUCCESSFUL, _INCONSISTENT) else code
         notes.append(
             f"the fitted lens makes circles up to {r_final:.3g} px but max_radius={window:g}"
         )
@@ -406,7 +419,7 @@ def _verdict(run: _Run, result: FitResult, info, r_final, window, notes, allow_d
                 f"free={spec.free}, shared={spec.shared}, {spec.n_targets} target(s): "
                 + degeneracy_reason(*why)
             )
-    elif code in (_SUCCESSFUL, _AMBIGUOUS, _WINDOW):
+    elif code in (_SUCCESSFUL, _AMBIGUOUS, _WINDOW, _INCONSISTENT):
         notes.extend(_infinity_notes(result, spec))
     if code == _MAX_STEPS:
         notes.insert(0, f"max_steps={run.max_steps}")
@@ -430,6 +443,20 @@ def _error_reason(err: BaseException) -> str:
     if found:
         return found.group(1).strip()
     return next((line.strip() for line in text.splitlines() if line.strip()), type(err).__name__)
+
+
+def _untested(dtype) -> dict[str, jax.Array]:
+    """The adequacy entry of a fit that never reached a solution: nothing tested (NaN)."""
+    nan = jnp.asarray(np.nan, dtype)
+    return dict(
+        chi2=nan,
+        dof=nan,
+        p_value=nan,
+        tiles=jnp.zeros((), jnp.int32),
+        inflation=nan,
+        spread=nan,
+        adequate=jnp.asarray(False),
+    )
 
 
 def _failed(run: _Run, err: BaseException, window: float) -> FitResult:
@@ -456,6 +483,7 @@ def _failed(run: _Run, err: BaseException, window: float) -> FitResult:
         success=jnp.asarray(False),
         focus_power_stderr=jnp.asarray(one(nan)),
         pixels_used=jnp.asarray(int(np.sum(live)), jnp.int32),
+        adequacy=_untested(dtype),
         names=spec.names,
         notes=f"{type(err).__name__} while solving: {_error_reason(err)}",
         max_radius=window,
@@ -575,7 +603,8 @@ def fit_lens(
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `status` (a
     `jaxdof.RESULTS` member) and `message`, when the best start did not converge, when distinct
-    lenses fit equally well, when the circles outgrow a given window, when the solver failed
+    lenses fit equally well, when the circles outgrow a given window, when the photo is not
+    consistent with the model (`inconsistent`: the adequacy test below), when the solver failed
     (also when running it raised an error, e.g. a forward model's run-time check or a NaN under
     `jax_debug_nans`: status `solver_failed`, the error's first line in `message`, the init
     lens), or (with `allow_degenerate`) when the free set is not determined. The best start is
@@ -601,7 +630,20 @@ def fit_lens(
     **Statistics.** With `J` the Jacobian of the weighted residuals at the solution,
     `cov = sigma^2 (J^T J)^{-1}` with `sigma^2 = SSR / (n - p)` (Gauss-Newton; `n` residuals with
     non-zero weight, the border band left out; `p` free parameters), mapped from the solver's
-    coordinates to `(f, N, 1 / d_f)` and then to each field's units by the chain rule. For Gaussian pixel noise these are the asymptotic (Cramér-Rao) errors.
+    coordinates to `(f, N, 1 / d_f)` and then to each field's units by the chain rule. For
+    Gaussian pixel noise these are the asymptotic (Cramér-Rao) errors.
+
+    **Does the model explain the photo?** Those errors know the pixel noise only. Every fit
+    therefore also tests, from the same residual and Jacobian (no extra solve), whether
+    independent tiles of the fitted region (a grid of about 8 x 8 px tiles, 3 to 8 per axis,
+    every photo and channel of a tile together, each tile also with its own gain and offset)
+    agree on one lens beyond their noise: Chow's test in score form, an F test at level 0.01
+    (`jaxdof.internal.adequacy`). Model error that differs over the photo (occlusion the model
+    does not render, vignetting, a border left in) makes the tiles disagree; then `status` is
+    `inconsistent` (`success=False`) and the standard errors are inflated to the spread between
+    the tiles (`FitResult.adequacy["inflation"]`, `stderr_kind == "tile spread"`). A model error
+    that every tile shares (a pentagonal aperture blurs like a smaller disc everywhere) cannot
+    show in such a test; `fits/results/adequacy.md` measures both.
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
     forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)
@@ -635,7 +677,7 @@ def fit_lens(
         model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
             run, y0s, rows, window
         )
-        result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single)
+        result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single, used)
         info.update(jax.device_get(stats))
     except _SOLVER_ERRORS as err:
         return _failed(run, err, window)

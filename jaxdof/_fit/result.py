@@ -30,8 +30,12 @@ class RESULTS(eqxi.Enumeration):  # pyright: ignore
     - `degenerate`: the data do not determine every free field (a rank-deficient Jacobian).
     - `window`: the fitted circles outgrow the given filter window (`max_radius`).
     - `ambiguous`: distinct lenses fit equally well (e.g. the near/far ambiguity).
+    - `inconsistent`: the solve converged, but the photo is not consistent with the model: parts
+      of it pull towards different lenses beyond their noise (the model-adequacy test,
+      `FitResult.adequacy`); the standard errors are inflated to the spread between the parts.
 
-    The last two are found by `fit_lens` only (`solve_lens` has one start and a fixed window).
+    `window` and `ambiguous` are found by `fit_lens` only (`solve_lens` has one start and a fixed
+    window).
     """
 
     successful = "converged"
@@ -60,6 +64,14 @@ class RESULTS(eqxi.Enumeration):  # pyright: ignore
         "several distinct lenses fit the data equally well (e.g. the near/far ambiguity): add a "
         "photo at another focus distance, or fix the focus distance"
     )
+    inconsistent = (
+        "the photo is not consistent with the model: tiles of it pull towards different lenses "
+        "beyond their noise (a model-adequacy test), so the lens is biased by what the model "
+        "lacks; the standard errors are inflated to the spread between the tiles. Common causes: "
+        "occlusion at depth edges (try method='occlusion' or a weight that leaves the edges "
+        "out), vignetting or uneven exposure (exposure=True fits one gain and offset), a "
+        "non-circular aperture, or a depth map that does not match the photo"
+    )
 
 
 # The members in the order of their codes (an Enumeration numbers its members as they are defined).
@@ -71,6 +83,7 @@ _NAMES = (
     "degenerate",
     "window",
     "ambiguous",
+    "inconsistent",
 )
 _MEMBERS = tuple(getattr(RESULTS, name) for name in _NAMES)
 
@@ -196,9 +209,17 @@ class FitResult(eqx.Module):
       weight in the residual at full resolution: the border band and `weight=0` left out.
     - `border`: the width (photo pixels) of the band along the edges left out of the residual
       (0: every pixel kept; see `fit_lens`'s `border`).
+    - `adequacy`: the model-adequacy test at the solution (`jaxdof.internal.adequacy`: do
+      independent tiles of the photo agree on one lens, beyond their noise?), a dict of arrays:
+      `chi2`, `dof`, `p_value`, `tiles` (tiles with information), `adequate` (`p_value >= 0.01`,
+      or too few degrees of freedom to test), `inflation` (`>= 1`; 1 unless the test fires).
+      When it fires the status is `inconsistent` (unless another failure came first) and
+      `stderr`, `focus_power_stderr` and `covariance` are already multiplied by `inflation`
+      (`inflation^2`): see `stderr_kind`.
     - `levels`: pyramid levels `fit_lens` solved on (1: full resolution only; see its `pyramid`).
 
-    `message` is the status's message and the notes; `lens` is the first target's lens;
+    `message` is the status's message and the notes; `stderr_kind` says what the standard errors
+    measure (`"noise"`, or `"tile spread"` when inflated); `lens` is the first target's lens;
     `focus_power` the focus power `1 / d_f` per target (diopters, 0 at infinity); `summary()`
     formats everything as a table and `to_dict()` as JSON-ready numbers.
     """
@@ -216,6 +237,7 @@ class FitResult(eqx.Module):
     success: Bool[Array, ""]
     focus_power_stderr: Float[Array, "*t"]
     pixels_used: Int[Array, ""]
+    adequacy: dict[str, Array]
     names: tuple[str, ...] = eqx.field(static=True)
     notes: str = eqx.field(static=True, default="")
     max_radius: float = eqx.field(static=True, default=0.0)
@@ -239,6 +261,25 @@ class FitResult(eqx.Module):
         self._check_one("message")
         text = RESULTS[self.status]
         return f"{text}; {self.notes}" if self.notes else text
+
+    @property
+    def stderr_kind(self) -> str:
+        """What the standard errors measure: `"noise"` (Gauss-Newton, the pixel noise only: the
+        model explained the photo) or `"tile spread"` (the adequacy test fired, and they are
+        inflated to the spread between the photo's tiles). For one fit."""
+        self._check_one("stderr_kind")
+        return "noise" if float(self.adequacy["inflation"]) == 1.0 else "tile spread"
+
+    def _adequacy_text(self) -> str:
+        a = {k: float(np.asarray(v)) for k, v in self.adequacy.items()}
+        verdict = "consistent" if a["adequate"] else "INCONSISTENT"
+        text = (
+            f"adequacy: {verdict} (chi2 {a['chi2']:.4g} on {a['dof']:g} dof, p = "
+            f"{a['p_value']:.3g}, {a['tiles']:g} tiles)"
+        )
+        if self.stderr_kind == "noise":
+            return text + "; stderr: noise"
+        return text + f"; stderr: tile spread (noise x {a['inflation']:.3g})"
 
     def _check_one(self, what: str) -> None:
         if np.ndim(self.success) != 0:
@@ -282,6 +323,7 @@ class FitResult(eqx.Module):
             f"window {self.max_radius:g} px, pixels used {int(self.pixels_used)} "
             f"(border {self.border} px)"
         )
+        lines.append(self._adequacy_text())
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
@@ -291,7 +333,8 @@ class FitResult(eqx.Module):
         `pixel_pitch`, m) and its `stderr` (free fields only); `lenses`, one dict per target with
         its own `stderr`, `focus_power` (diopters) and `focus_power_stderr`; `success`, `status`
         (the `RESULTS` member's name), `message`, `steps`, `loss`, `sigma`, `condition`,
-        `max_radius` (px), `pixels_used`, `border` (px), `levels`, `names`, `covariance` (rows
+        `max_radius` (px), `pixels_used`, `border` (px), `levels`, `adequacy` (the test's
+        numbers, `adequate` a bool), `stderr_kind`, `names`, `covariance` (rows
         and columns in the order of `names`), `gain` and `offset` (per target). Numbers are the
         shortest decimals that round-trip the arrays' precision; NaN and inf become `None`.
         For one fit (index a batch first).
@@ -325,6 +368,10 @@ class FitResult(eqx.Module):
             "pixels_used": int(self.pixels_used),
             "border": int(self.border),
             "levels": int(self.levels),
+            "adequacy": {
+                k: bool(v) if k == "adequate" else _json_float(v) for k, v in self.adequacy.items()
+            },
+            "stderr_kind": self.stderr_kind,
             "names": list(self.names),
             "covariance": [[_json_float(x) for x in row] for row in np.asarray(self.covariance)],
             "gain": [_json_float(x) for x in np.asarray(self.gain)],

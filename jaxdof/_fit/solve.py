@@ -10,6 +10,11 @@ finite interval holds the distance). For Gaussian pixel noise these are the asym
 (Cramér-Rao) errors. A free set the data cannot determine shows as a rank-deficient
 column-scaled Jacobian.
 
+**Model adequacy.** Every fit then tests, from the same residual and Jacobian, whether
+independent tiles of the photo agree on one lens beyond their noise (`adequacy.py`: Chow's test
+in score form, each tile also allowed its own exposure); when they do not, the status is
+`inconsistent` and the covariance is inflated to the spread between the tiles.
+
 `fit_lens` runs two compiled stages per level, `fit_starts` (every start, vmapped, and the
 Jacobians at the best) and `finish` (statistics and the `FitResult`), through `run_stage`, which
 `record_stages` can time; settling a focus at infinity adds a `fit_starts` and a `restate`.
@@ -32,6 +37,7 @@ from jaxtyping import Array, ArrayLike
 
 from .._filters import AbstractMethod
 from .._lens import ThinLens
+from .adequacy import adequacy, rounding_noise
 from .forward import AbstractForwardModel
 from .layout import _W_MIN, _Spec, theta_floor
 from .prepare import _check_names, _prepare, check_differentiable, forward_model
@@ -102,6 +108,31 @@ def _statistics(residual, jac, g, theta, floor, n, used: tuple[int, ...]) -> dic
         condition=condition,
         degenerate=~jnp.all(good) | jnp.any(scale == 0),
         jac_zero=jnp.all(scale == 0),
+    )
+
+
+def _check_model(residual, jac, args, spec: _Spec, band: int) -> dict[str, Array]:
+    """The model-adequacy test (`adequacy.adequacy`) at the solution: tiles of the region inside
+    the border `band`, every target and channel of a tile together; each tile may also have its
+    own gain and offset per target (the prediction and the weight as `extra` columns), so that
+    photometric model error (vignetting, uneven exposure) shows too; the noise kept above the
+    targets' rounding level."""
+    _, _, targets, sqrt_w, _ = args
+    shape = targets.shape
+    sw = jnp.broadcast_to(sqrt_w, shape).astype(residual.dtype)
+    pred = residual.reshape(shape) + sw * targets  # sqrt(w) * model
+    t = shape[0]
+    which = jnp.arange(t).reshape((t,) + (1,) * (len(shape) - 1))
+    extra = [jnp.where(which == i, x, 0).reshape(-1) for i in range(t) for x in (pred, sw)]
+    return adequacy(
+        residual,
+        jac,
+        shape,
+        sw > 0,
+        used=spec.used,
+        extra=jnp.stack(extra, axis=1),
+        band=band,
+        noise_floor=rounding_noise(sw * targets, sw > 0),
     )
 
 
@@ -234,15 +265,16 @@ def restate(model: _Model, y, args):
 
 
 @eqx.filter_jit
-def finish(model: _Model, solution, args, spec: _Spec, single: bool):
-    """Statistics, status and the `FitResult` (without its notes and border width) at the chosen
-    solution, and the few numbers `fit_lens` reads in Python to word the message. `args` are the
-    solve's, with the weights it used (the border band applied)."""
+def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
+    """Statistics, the adequacy test, status and the `FitResult` (without its notes and border
+    width) at the chosen solution, and the few numbers `fit_lens` reads in Python to word the
+    message. `args` are the solve's, with the weights it used (the border `band` applied)."""
     y, status, num_steps, residual, theta, jac, g = solution
     _, _, targets, sqrt_w, layout = args
     floor = theta_floor(layout, spec.exposure)
     stats = _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
-    result = _assemble(spec, model, (y, status, num_steps, theta), stats, args, single)
+    check = _check_model(residual, jac, args, spec, band)
+    result = _assemble(spec, model, (y, status, num_steps, theta), stats, check, args, single)
     info = dict(
         status=result.status,
         condition=stats["condition"],
@@ -253,9 +285,12 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool):
 
 
 @eqx.filter_jit
-def _solve_one(model: _Model, solver, y0, args, max_steps: int, spec: _Spec, single: bool):
-    """`solve_lens`'s numerics: one solve, its Jacobian, statistics and status (one compiled call
-    when `solve_lens` runs eagerly; inlined into the caller's trace under jit/vmap)."""
+def _solve_one(
+    model: _Model, solver, y0, args, max_steps: int, spec: _Spec, single: bool, band: int
+):
+    """`solve_lens`'s numerics: one solve, its Jacobian, statistics, adequacy test and status
+    (one compiled call when `solve_lens` runs eagerly; inlined into the caller's trace under
+    jit/vmap)."""
     y, status, num_steps, residual, theta, jac = _solve(model, solver, y0, args, max_steps)
     jac, g = _jacobians(model, y, args, jac)
     bad_jac = (status == RESULTS.successful) & ~jnp.all(jnp.isfinite(jac))
@@ -263,7 +298,8 @@ def _solve_one(model: _Model, solver, y0, args, max_steps: int, spec: _Spec, sin
     _, _, targets, sqrt_w, layout = args
     floor = theta_floor(layout, spec.exposure)
     stats = _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
-    return _assemble(spec, model, (y, status, num_steps, theta), stats, args, single)
+    check = _check_model(residual, jac, args, spec, band)
+    return _assemble(spec, model, (y, status, num_steps, theta), stats, check, args, single)
 
 
 def _focus_to_distance(spec: _Spec, y, theta, var, cov):
@@ -288,14 +324,17 @@ def _focus_to_distance(spec: _Spec, y, theta, var, cov):
     return var_out, cov * s[:, None] * s[None, :], se_u
 
 
-def _assemble(spec: _Spec, model: _Model, point, stats, args, single) -> FitResult:
+def _assemble(spec: _Spec, model: _Model, point, stats, check, args, single) -> FitResult:
     """Build a FitResult from the raw solve outputs (works on tracers). `point` is the solution
     `(y, status, num_steps, theta)`, `args` the solve's (weights with the border band applied;
-    the caller sets `border`, a static field, so that it is no part of the compiled code)."""
+    the caller sets `border`, a static field, so that it is no part of the compiled code). The
+    adequacy test's (`check`, `_check_model`) `inflation` multiplies the covariance (its square) before it is mapped to the
+    fields' units, so every derived error (`K`, the focus distance from its power) inherits it."""
     y, status, num_steps, theta = point
     _, _, targets, sqrt_w, layout = args
+    s2 = jnp.square(check["inflation"]).astype(stats["covariance"].dtype)
     var, covariance, se_u = _focus_to_distance(
-        spec, y, theta, stats["variance"], stats["covariance"]
+        spec, y, theta, stats["variance"] * s2, stats["covariance"] * s2
     )
     stderr: dict[str, Array] = {}
     for name in spec.free + (("gain", "offset") if spec.exposure else ()):
@@ -308,6 +347,7 @@ def _assemble(spec: _Spec, model: _Model, point, stats, args, single) -> FitResu
     )
     gain, offset = model.exposure_params(y)
     ok = status == RESULTS.successful
+    status = RESULTS.where(ok & ~check["adequate"], RESULTS.inconsistent, status)
     status = RESULTS.where(
         ok & stats["jac_zero"],
         RESULTS.dead_zone,
@@ -327,6 +367,7 @@ def _assemble(spec: _Spec, model: _Model, point, stats, args, single) -> FitResu
         success=status == RESULTS.successful,
         focus_power_stderr=se_power[0] if single else se_power,
         pixels_used=_n_pixels(targets, sqrt_w),
+        adequacy=check,
         names=spec.names,
         max_radius=model.max_radius,
     )
@@ -437,5 +478,5 @@ def solve_lens(
         solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
     args = (image, depth, targets, sqrt_w, layout)
     y0 = residual.pack(base, layout)
-    result = _solve_one(residual, solver, y0, args, int(max_steps), spec, single)
+    result = _solve_one(residual, solver, y0, args, int(max_steps), spec, single, band)
     return dataclasses.replace(result, border=band)
