@@ -40,8 +40,8 @@ from _common import result_path, versions_line, write_markdown  # noqa: E402
 import jaxdof  # noqa: E402
 from jaxdof import ThinLens, circle_pixel_overlap, coc_filter, render  # noqa: E402
 
-# Semi-internal: the filter without the run-time input checks.
-from jaxdof.internal import soft_filter  # noqa: E402
+# Semi-internal: the filter without the run-time input checks, and the textbook overlap formula.
+from jaxdof.internal import soft_filter, textbook_overlap  # noqa: E402
 
 
 SEED = 0
@@ -51,28 +51,11 @@ SEED = 0
 # 1. circle_pixel_overlap in float32
 
 
-def textbook(dx, dy, r):
-    """Inclusion-exclusion of F(x, y) = int_0^x min(y, sqrt(r^2 - t^2)) dt over the square's four
-    corners (first-quadrant form, valid for squares in the first quadrant as used below), with the
-    antiderivative (t sqrt(r^2 - t^2) + r^2 asin(t / r)) / 2: r^2-sized terms differenced."""
-
-    def prim(t):
-        return 0.5 * (t * jnp.sqrt(r * r - t * t) + r * r * jnp.arcsin(t / r))
-
-    def big_f(x, y):
-        xm = jnp.sqrt(jnp.maximum(r * r - y * y, 0))
-        xa, xb = jnp.minimum(x, xm), jnp.minimum(x, r)
-        return y * xa + prim(xb) - prim(xa)
-
-    x0, x1, y0, y1 = dx - 0.5, dx + 0.5, dy - 0.5, dy + 0.5
-    return big_f(x1, y1) - big_f(x0, y1) - big_f(x1, y0) + big_f(x0, y0)
-
-
 def overlap_study(n_radii=45, n_squares=4000):
     rng = np.random.default_rng(SEED)
     radii = np.logspace(-8, 3, n_radii)
     ours = jax.jit(circle_pixel_overlap)  # one compile per dtype: float32 under test, float64 ref
-    text32 = jax.jit(textbook)
+    text32 = jax.jit(textbook_overlap)  # valid in the first quadrant: squares below
     rows = []
     for r in radii:
         r32 = np.float32(r)

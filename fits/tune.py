@@ -55,6 +55,7 @@ import argparse
 import contextlib
 import dataclasses
 import datetime
+import inspect
 import math
 import os
 import platform
@@ -105,6 +106,14 @@ class Config:
     radii: list[float] | None  # overrides the SPANS_MIN_RADIUS sweep
     clock: str = "wall"  # which median decides: "wall" or "cpu"
     mode: str = "forward"  # SPANS_MIN_RADIUS: time the forward pass or a JVP
+
+    def pick(self, quick, full):
+        """A study's setting: `quick` under `--quick`, else `full`."""
+        return quick if self.quick else full
+
+    def frame(self, quick: int, full: int) -> int:
+        """A study's frame size: `--size`, else `pick(quick, full)`."""
+        return self.size or self.pick(quick, full)
 
 
 @dataclasses.dataclass
@@ -217,6 +226,13 @@ def spread_levels(n: int, r: float) -> np.ndarray:
     return np.linspace(max(r / 2, 0.6), r, n).astype(np.float32)
 
 
+def spread_level_map(size: int, n: int, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`(levels, radius map, index map)`: `spread_levels(n, r)` drawn at random per pixel
+    (`level_map`)."""
+    levels = spread_levels(n, r)
+    return (levels, *level_map(size, levels))
+
+
 # --------------------------------------------------------------------------------------------
 # Reading off a value
 # --------------------------------------------------------------------------------------------
@@ -327,8 +343,8 @@ def result(name: str, points: list[Point], rule: Rule, new, note: str, keep=True
 
 def study_spans_min_radius(cfg: Config) -> Result:
     """`SPANS_MIN_RADIUS`: the soft filter's crossover from the dense gather to row spans."""
-    size = cfg.size or (128 if cfg.quick else 256)
-    default = [8, 16, 32] if cfg.quick else [8, 12, 16, 20, 24, 32, 40, 48, 64]
+    size = cfg.frame(128, 256)
+    default = cfg.pick([8, 16, 32], [8, 12, 16, 20, 24, 32, 40, 48, 64])
     radii = [float(r) for r in cfg.radii or default]
     say(
         f"Soft filter {cfg.mode}, {size}^2 RGB float32, radii uniform in [R/2, R], max_radius = R; "
@@ -380,10 +396,10 @@ def _by_samples(kind: str, cfg: Config) -> Result:
     is_jitter = kind == "jitter"
     name = "JITTER_SPANS_MIN_RADIUS" if is_jitter else "SUPERSAMPLE_SPANS_MIN_RADIUS"
     old: dict = getattr(_tuning, name)
-    size = cfg.size or (64 if cfg.quick else 256)
+    size = cfg.frame(64, 256)
     beyond = 64 if is_jitter else 32  # the `inf` key is measured at this many samples
-    keys = list(old)[1:2] if cfg.quick else list(old)
-    sweep = [float(r) for r in ([8, 16, 24] if cfg.quick else [8, 12, 16, 20, 24, 32, 40, 48, 64])]
+    keys = cfg.pick(list(old)[1:2], list(old))
+    sweep = [float(r) for r in cfg.pick([8, 16, 24], [8, 12, 16, 20, 24, 32, 40, 48, 64])]
     say(
         f"{kind}, forward, {size}^2 RGB float32, smooth radius field over [R/2, R]; "
         f"`{kind}_filter(..., path='dense' | 'spans')`, key `inf` measured at n = {beyond}; ms "
@@ -445,6 +461,26 @@ def study_supersample_spans_min_radius(cfg: Config) -> Result:
     return _by_samples("supersample", cfg)
 
 
+def _threshold_study(
+    name: str,
+    sizes: list,
+    build,
+    cfg: Config,
+    labels: tuple[str, str],
+    unit: str,
+    setting: str,
+    allowed=None,
+) -> Result:
+    """The study of a threshold `name`: the sweep over `sizes` (`_threshold_sweep`), the value read
+    off it (`_threshold_result`). `setting` (the frame and radius) is said first and noted;
+    `allowed(value, {s: (first compile s, second compile s)})`: a further condition on a value."""
+    note = f"{setting}, {unit} in {sizes}"
+    say(f"Swept: {note}.")
+    points, compile_s = _threshold_sweep(name, sizes, build, cfg, labels, unit)
+    ok = None if allowed is None else (lambda value: allowed(value, compile_s))
+    return _threshold_result(name, points, note, ok)
+
+
 def _threshold_sweep(
     name: str, sizes: list[int], build, cfg: Config, labels: tuple[str, str], unit: str
 ) -> tuple[list[Point], dict[int, tuple[float, float]]]:
@@ -484,77 +520,73 @@ def _threshold_result(name: str, points: list[Point], note: str, allowed=None) -
 
 
 def study_compare_all_max(cfg: Config) -> Result:
-    """`COMPARE_ALL_MAX`: jitter's compare-every-threshold count against the binary search."""
-    size = cfg.size or (64 if cfg.quick else 256)
-    r = 8.0
-    ns = [16, 64] if cfg.quick else [4, 16, 32, 64]
-    say(
-        f"jitter, dense path, {size}^2 RGB float32, R = {r:g}, smooth radius, n points: compare "
-        "against every threshold (COMPARE_ALL_MAX >= n) vs binary search."
-    )
+    """`COMPARE_ALL_MAX`: jitter's compare-every-threshold count against the binary search.
+
+    Jitter, dense path, RGB float32, smooth radius, n points: compare against every threshold
+    (COMPARE_ALL_MAX >= n) vs binary search.
+    """
+    size, r = cfg.frame(64, 256), 8.0
     image, radius, key = image_of(size), smooth_radius(size, r), jax.random.key(0)
 
     def build(n):
         fn = lambda i, q: jitter_filter(i, q, max_radius=r, samples=n, key=key, path="dense")
         return fn, (image, radius)
 
-    points, _ = _threshold_sweep("COMPARE_ALL_MAX", ns, build, cfg, ("compare", "search"), "n")
-    return _threshold_result("COMPARE_ALL_MAX", points, f"{size}^2, R = 8, n in {ns}")
+    ns, labels = cfg.pick([16, 64], [4, 16, 32, 64]), ("compare", "search")
+    return _threshold_study("COMPARE_ALL_MAX", ns, build, cfg, labels, "n", f"{size}^2, R = {r:g}")
 
 
 def study_unroll_rows(cfg: Config) -> Result:
-    """`UNROLL_ROWS`: supersample's sub-rows written out against a `fori_loop`."""
-    size = cfg.size or (64 if cfg.quick else 128)
-    r = 4.0
-    ns = [8, 16, 32] if cfg.quick else [4, 8, 16, 32, 64]
-    say(
-        f"supersample, dense path, {size}^2 RGB float32, R = {r:g}, n x n samples: the sub-rows of "
-        "a count written out (UNROLL_ROWS >= n) vs a fori_loop. A value is allowed only if every "
-        "n it writes out compiles in at most 2x the loop's time (the reason for the constant)."
-    )
+    """`UNROLL_ROWS`: supersample's sub-rows written out against a `fori_loop`.
+
+    Supersample, dense path, RGB float32, smooth radius, n x n samples: the sub-rows of a count
+    written out (UNROLL_ROWS >= n) vs a fori_loop. A value is allowed only if every n it writes
+    out compiles in at most 2x the loop's time (the reason for the constant).
+    """
+    size, r = cfg.frame(64, 128), 4.0
     image, radius = image_of(size), smooth_radius(size, r)
 
     def build(n):
         fn = lambda i, q: supersample_filter(i, q, max_radius=r, samples=n, path="dense")
         return fn, (image, radius)
 
-    points, comp = _threshold_sweep("UNROLL_ROWS", ns, build, cfg, ("unrolled", "loop"), "n")
+    def allowed(value, compile_s):
+        return all(first <= 2 * second for n, (first, second) in compile_s.items() if n <= value)
 
-    def allowed(value):
-        return all(comp[n][0] <= 2 * comp[n][1] for n in ns if n <= value)
-
-    return _threshold_result("UNROLL_ROWS", points, f"{size}^2, R = 4, n in {ns}", allowed)
+    ns, setting = cfg.pick([8, 16, 32], [4, 8, 16, 32, 64]), f"{size}^2, R = {r:g}"
+    return _threshold_study(
+        "UNROLL_ROWS", ns, build, cfg, ("unrolled", "loop"), "n", setting, allowed
+    )
 
 
 def study_unroll_levels(cfg: Config) -> Result:
-    """`UNROLL_LEVELS`: the layered FFT level loop written out against a scan."""
-    size = cfg.size or (128 if cfg.quick else 256)
-    r = 8.0
-    counts = [3, 8] if cfg.quick else [3, 8, 12, 16]
-    say(
-        f"layered, FFT path, {size}^2 RGB float32, R = {r:g}, L levels (concrete map, static "
-        "levels): level loop written out (UNROLL_LEVELS >= L) vs lax.scan."
-    )
+    """`UNROLL_LEVELS`: the layered FFT level loop written out against a scan.
+
+    Layered, FFT path, RGB float32, L levels (a concrete map, static levels): the level loop
+    written out (UNROLL_LEVELS >= L) vs lax.scan.
+    """
+    size, r = cfg.frame(128, 256), 8.0
     image = image_of(size)
 
     def build(n):
-        levels = spread_levels(n, r)
-        radius, index = level_map(size, levels)
+        levels, radius, index = spread_level_map(size, n, r)
         radius = jnp.asarray(radius)
         fn = lambda i: layered_filter(
             i, radius, max_radius=r, layers=n, assignment=index, static_levels=levels, path="fft"
         )
         return fn, (image,)
 
-    points, _ = _threshold_sweep("UNROLL_LEVELS", counts, build, cfg, ("unrolled", "scan"), "L")
-    return _threshold_result("UNROLL_LEVELS", points, f"{size}^2, R = 8, L in {counts}")
+    counts, labels = cfg.pick([3, 8], [3, 8, 12, 16]), ("unrolled", "scan")
+    return _threshold_study(
+        "UNROLL_LEVELS", counts, build, cfg, labels, "L", f"{size}^2, R = {r:g}"
+    )
 
 
 def study_fft_level_cost_in_taps(cfg: Config) -> Result:
     """`FFT_LEVEL_COST_IN_TAPS`: layered's direct sum against its FFTs (traced radius)."""
-    size = cfg.size or (128 if cfg.quick else 256)
-    radii = [2.0, 8.0, 16.0] if cfg.quick else [2.0, 4.0, 8.0, 12.0, 16.0]
-    counts = [2, 8] if cfg.quick else [2, 4, 8, 16]
+    size = cfg.frame(128, 256)
+    radii = cfg.pick([2.0, 8.0, 16.0], [2.0, 4.0, 8.0, 12.0, 16.0])
+    counts = cfg.pick([2, 8], [2, 4, 8, 16])
     say(
         f"layered, traced radius, {size}^2 RGB float32, L levels at random per pixel: "
         "path='direct' (tabulated gather, T taps) vs path='fft'. The rule takes the direct sum "
@@ -566,7 +598,7 @@ def study_fft_level_cost_in_taps(cfg: Config) -> Result:
     for r in radii:
         taps = len(tap_offsets(r))
         for n in counts:
-            radius = jnp.asarray(level_map(size, spread_levels(n, r))[0])
+            radius = jnp.asarray(spread_level_map(size, n, r)[1])
             fns = {
                 p: compiled(
                     lambda i, q, p=p, r=r, n=n: layered_filter(
@@ -600,8 +632,8 @@ def study_fft_level_cost_in_taps(cfg: Config) -> Result:
 
 def study_layer_cost_in_taps(cfg: Config) -> Result:
     """`LAYER_COST_IN_TAPS`: `auto`'s FFT layers against the tabulated gather (concrete map)."""
-    sizes = [cfg.size] if cfg.size else ([64] if cfg.quick else [64, 256])
-    radii = [8.0] if cfg.quick else [4.0, 8.0, 16.0, 24.0]
+    sizes = [cfg.size] if cfg.size else cfg.pick([64], [64, 256])
+    radii = cfg.pick([8.0], [4.0, 8.0, 16.0, 24.0])
     n = 4
     say(
         f"auto's two candidates on a concrete map of {n} blurred levels (RGB float32): layered FFT "
@@ -622,8 +654,7 @@ def study_layer_cost_in_taps(cfg: Config) -> Result:
     for size in sizes:
         image = image_of(size)
         for r in radii:
-            levels = spread_levels(n, r)
-            radius, index = level_map(size, levels)
+            levels, radius, index = spread_level_map(size, n, r)
             radius = jnp.asarray(radius)
             taps = len(tap_offsets(r))
             fns = {
@@ -663,9 +694,9 @@ def study_layer_cost_in_taps(cfg: Config) -> Result:
 def study_table_levels_per_pixel(cfg: Config) -> Result:
     """`TABLE_LEVELS_PER_PIXEL`: `auto`'s tabulated gather against the soft filter, by the number
     of distinct radii per pixel."""
-    size = cfg.size or (64 if cfg.quick else 256)
+    size = cfg.frame(64, 256)
     r = 8.0
-    fractions = [1 / 16, 1 / 4] if cfg.quick else [1 / 256, 1 / 32, 1 / 8, 1 / 2, 1.0]
+    fractions = cfg.pick([1 / 16, 1 / 4], [1 / 256, 1 / 32, 1 / 8, 1 / 2, 1.0])
     say(
         f"{size}^2 RGB float32, R = {r:g}, L = f H W distinct radii over [R/2, R] at random per "
         "pixel: tabulated gather (levels, index) vs the soft filter (its default path). The host's "
@@ -675,8 +706,7 @@ def study_table_levels_per_pixel(cfg: Config) -> Result:
     header = ["f", "L", "tabulated ms", "host index ms", "soft ms", "tabulated/soft", "other clock"]
     rows, points = [], []
     for f in fractions:
-        levels = spread_levels(max(2, int(f * size * size)), r)
-        radius, index = level_map(size, levels)
+        levels, radius, index = spread_level_map(size, max(2, int(f * size * size)), r)
         radius_j = jnp.asarray(radius)
         t0 = time.perf_counter()
         unique_with_index(radius)
@@ -703,35 +733,32 @@ def study_table_levels_per_pixel(cfg: Config) -> Result:
 
 
 def study_select_max_levels(cfg: Config) -> Result:
-    """`SELECT_MAX_LEVELS`: the tabulated look-up as a chain of selects against `jnp.take`."""
-    size = cfg.size or (128 if cfg.quick else 512)
-    r = 2.0
-    counts = [3, 16] if cfg.quick else [3, 8, 16, 24, 32]
-    say(
-        f"tabulated gather, {size}^2 RGB float32, R = {r:g}, L levels: look-up by a chain of "
-        "selects (SELECT_MAX_LEVELS >= L) vs jnp.take."
-    )
+    """`SELECT_MAX_LEVELS`: the tabulated look-up as a chain of selects against `jnp.take`.
+
+    Tabulated gather, RGB float32, L levels: look-up by a chain of selects (SELECT_MAX_LEVELS >= L)
+    vs jnp.take.
+    """
+    size, r = cfg.frame(128, 512), 2.0
     image = image_of(size)
 
     def build(n):
-        levels = spread_levels(n, r)
-        _, index = level_map(size, levels)
+        levels, _, index = spread_level_map(size, n, r)
         return (lambda i: tabulated_filter(i, max_radius=r, levels=levels, index=index)), (image,)
 
-    points, _ = _threshold_sweep("SELECT_MAX_LEVELS", counts, build, cfg, ("select", "take"), "L")
-    return _threshold_result("SELECT_MAX_LEVELS", points, f"{size}^2, R = 2, L in {counts}")
+    counts, labels = cfg.pick([3, 16], [3, 8, 16, 24, 32]), ("select", "take")
+    return _threshold_study(
+        "SELECT_MAX_LEVELS", counts, build, cfg, labels, "L", f"{size}^2, R = {r:g}"
+    )
 
 
 def study_fused_max_taps(cfg: Config) -> Result:
-    """`FUSED_MAX_TAPS`: the tabulated gather's class loop written out against scanned."""
-    size = cfg.size or (128 if cfg.quick else 256)
-    radii = [2.0, 2.9] if cfg.quick else [2.0, 2.5, 2.9, 3.0]
+    """`FUSED_MAX_TAPS`: the tabulated gather's class loop written out against scanned.
+
+    Tabulated gather, RGB float32, three levels (one sharp), by the window's taps: the class loop
+    written out (FUSED_MAX_TAPS >= taps) vs scanned.
+    """
+    size, radii = cfg.frame(128, 256), cfg.pick([2.0, 2.9], [2.0, 2.5, 2.9, 3.0])
     by_taps = {len(tap_offsets(r)): r for r in radii}
-    say(
-        f"tabulated gather, {size}^2 RGB float32, three levels (one sharp), by the window's taps "
-        f"(R = {', '.join(f'{r:g}' for r in radii)}: {list(by_taps)} taps): the class loop written "
-        "out (FUSED_MAX_TAPS >= taps) vs scanned."
-    )
     image = image_of(size)
 
     def build(taps):
@@ -740,16 +767,16 @@ def study_fused_max_taps(cfg: Config) -> Result:
         _, index = level_map(size, levels)
         return (lambda i: tabulated_filter(i, max_radius=r, levels=levels, index=index)), (image,)
 
-    points, _ = _threshold_sweep(
-        "FUSED_MAX_TAPS", list(by_taps), build, cfg, ("written out", "scan"), "taps"
+    setting = f"{size}^2, R = {', '.join(f'{r:g}' for r in radii)}"
+    return _threshold_study(
+        "FUSED_MAX_TAPS", list(by_taps), build, cfg, ("written out", "scan"), "taps", setting
     )
-    return _threshold_result("FUSED_MAX_TAPS", points, f"{size}^2, taps in {list(by_taps)}")
 
 
 def study_compare_max_levels(cfg: Config) -> Result:
     """`COMPARE_MAX_LEVELS`: the index map by comparison passes against `np.unique`'s argsort."""
-    size = cfg.size or (256 if cfg.quick else 1024)
-    counts = [3, 16, 64] if cfg.quick else [3, 8, 16, 24, 32, 48, 64]
+    size = cfg.frame(256, 1024)
+    counts = cfg.pick([3, 16, 64], [3, 8, 16, 24, 32, 48, 64])
     say(
         f"index map of a {size}^2 float32 map with L distinct values (numpy, host): one comparison "
         "pass per value (COMPARE_MAX_LEVELS >= L) vs np.unique(return_inverse=True)."
@@ -861,7 +888,7 @@ def main(argv=None) -> None:
     say(["# Tuning constants re-measured (`fits/tune.py`)", "", *machine(), ""])
     results, start = [], time.perf_counter()
     for name in args.only or list(STUDIES):
-        say([f"## {name}", "", (STUDIES[name].__doc__ or "").split("\n")[0], ""])
+        say([f"## {name}", "", inspect.getdoc(STUDIES[name]) or "", ""])
         t0 = time.perf_counter()
         res = STUDIES[name](cfg)
         results.append(res)

@@ -122,7 +122,7 @@ class GaussianBlur(AbstractMethod):
 
     differentiable_in_radius: ClassVar[bool] = True
 
-    def __call__(self, image, radius, *, max_radius, depth=None):
+    def spread(self, image, radius, *, max_radius, depth):
         w = math.ceil(max_radius)
         h, wd, _ = image.shape
         o = np.arange(-w, w + 1)

@@ -8,6 +8,7 @@ from jax.test_util import check_grads
 
 from jaxdof import circle_pixel_overlap
 from jaxdof._overlap import _asin
+from jaxdof.internal import textbook_overlap
 
 from .helpers import overlap_by_integration
 
@@ -105,26 +106,11 @@ def test_float32_accuracy_every_radius(r):
 
 def test_textbook_formula_is_what_we_avoid():
     """Document the measured failure of inclusion-exclusion in float32 (motivates the local form)."""
-
-    def textbook(dx, dy, r):
-        # Inclusion-exclusion of F(x, y) = int_0^x min(y, sqrt(r^2 - t^2)) dt (first quadrant),
-        # with the antiderivative prim(t) = (t sqrt(r^2 - t^2) + r^2 asin(t / r)) / 2.
-        def prim(t):
-            return 0.5 * (t * jnp.sqrt(r * r - t * t) + r * r * jnp.arcsin(t / r))
-
-        def F(x, y):
-            xm = jnp.sqrt(jnp.maximum(r * r - y * y, 0))
-            xa, xb = jnp.minimum(x, xm), jnp.minimum(x, r)
-            return y * xa + prim(xb) - prim(xa)
-
-        x0, x1, y0, y1 = dx - 0.5, dx + 0.5, dy - 0.5, dy + 0.5
-        return F(x1, y1) - F(x0, y1) - F(x1, y0) + F(x0, y0)
-
     r = np.float32(1000.0)
     dx, dy = np.float32(707.0), np.float32(707.0)  # a square the circle crosses
     exact = float(_exact64(np.array([dx]), np.array([dy]), np.array([r]))[0])
     ours = float(circle_pixel_overlap(dx, dy, r))
-    naive = float(jax.jit(textbook)(dx, dy, r))
+    naive = float(jax.jit(textbook_overlap)(dx, dy, r))
     assert abs(ours - exact) < 2e-6 * 1000
     assert abs(naive - exact) > 1e-2  # digits lost to r^2-sized cancellation
 

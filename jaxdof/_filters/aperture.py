@@ -11,8 +11,9 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, ArrayLike, Float, PRNGKeyArray
 
+from .._custom_types import Radius
 from .base import AbstractMethod
-from .common import check_blades, check_int, check_key, check_rotation
+from .common import ChannelsLast, check_blades, check_int, check_key, check_rotation
 from .shape import map_to_aperture
 
 
@@ -45,8 +46,8 @@ def lens_samples(
 
 
 def aperture_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
+    image: ChannelsLast,
+    radius: Radius,
     *,
     max_radius: float,
     samples: int,
@@ -54,7 +55,7 @@ def aperture_filter(
     key: Array | None,
     blades: int | None = None,
     rotation: float = 0.0,
-) -> Float[Array, "h w c"]:
+) -> ChannelsLast:
     """Average of `samples` bilinear forward splats at `q + u_k r_q`."""
     h, w, c = image.shape
     dtype = image.dtype
@@ -184,22 +185,5 @@ class Aperture(AbstractMethod):
         # the lattice's angles turn with `rotation` on the disc too: never refused here
         self.rotation = check_rotation(rotation, self.blades, "")
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        del depth
-        return aperture_filter(
-            image,
-            radius,
-            max_radius=max_radius,
-            samples=self.samples,
-            pattern=self.pattern,
-            key=self.key,
-            blades=self.blades,
-            rotation=self.rotation,
-        )
+    def spread(self, image, radius, *, max_radius, depth):
+        return aperture_filter(image, radius, max_radius=max_radius, **self._options())

@@ -6,7 +6,6 @@ import logging
 from typing import ClassVar, final
 
 import numpy as np
-from jaxtyping import Array, Float
 
 from .. import _tuning
 from .base import AbstractMethod
@@ -96,15 +95,7 @@ class Auto(AbstractMethod):
         layers = 1 if choice == "convolution" else distinct_levels(radius)
         return Layered(layers=layers).prepare(radius, max_radius)
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
+    def spread(self, image, radius, *, max_radius, depth):
         """A traced radius map (`prepare` was not called): the documented fallback to `Soft`."""
-        del depth
         logger.info("coc_filter(method=Auto()): the radius map is traced, using Soft()")
         return Soft()(image, radius, max_radius=max_radius)

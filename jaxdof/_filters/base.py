@@ -8,17 +8,21 @@ $$\text{out}[p] = \sum_q \text{image}[q]\, k_{r_q}(p - q)$$
 
 with a kernel `k_r` that integrates to one (energy conserving). `jaxdof.coc_filter` checks the
 inputs, resolves the window and calls `method.prepare` (on a concrete radius map) and then the
-method itself on a channels-last image.
+method itself on a channels-last image: `AbstractMethod.__call__`, which runs the subclass's
+`spread`.
 """
 
 from __future__ import annotations
 
 import abc
-from typing import ClassVar
+import dataclasses
+from typing import Any, ClassVar
 
 import equinox as eqx
 import numpy as np
-from jaxtyping import Array, Float
+
+from .._custom_types import Depth, Radius
+from .common import ChannelsLast
 
 
 class AbstractMethod(eqx.Module):
@@ -33,17 +37,20 @@ class AbstractMethod(eqx.Module):
       (occlusion ordering); `jaxdof.render` then passes it.
     - `prepare(radius, max_radius)`: optional precomputation on a *concrete* radius map (numpy),
       e.g. radius levels or the choice of a kernel; returns the method to call (default: itself).
-      Not called when the radius is traced (under `jit`/`grad`), so `__call__` must work without it.
-    - `__call__(image, radius, *, max_radius, depth)`: the filter, on `image` `(H, W, C)` and
+      Not called when the radius is traced (under `jit`/`grad`), so the method must work without
+      it.
+    - `spread(image, radius, *, max_radius, depth)`: the filter, on `image` `(H, W, C)` and
       `radius` `(H, W)` (pixels, already clamped to `max_radius`), returning `(H, W, C)`. It must be
-      a pure JAX function of its array arguments (jit, vmap, grad). `depth` (`(H, W)`) is passed
-      only to a method with `uses_depth`.
+      a pure JAX function of its array arguments (jit, vmap, grad). `depth` (`(H, W)`) is `None`
+      unless the method `uses_depth`. A method is called as `method(image, radius, *, max_radius,
+      depth=None)`: `__call__`, defined here once (the signature and its types), runs `spread`.
 
     Options are fields: arrays (a random key) as leaves, Python ints and strings that shape the
     computation as `eqx.field(static=True)`. Checks of the options belong in `__check_init__` or
-    `__init__` (`ValueError` naming the option and the fix). `jaxdof.coc_filter`, `jaxdof.render`
-    and `jaxdof.render_batch` take an instance, or a built-in's name (`as_method`: `"soft"` is
-    `Soft()`).
+    `__init__` (`ValueError` naming the option and the fix). A method whose fields are exactly its
+    kernel's keyword options passes them on as `**self._options()`. `jaxdof.coc_filter`,
+    `jaxdof.render` and `jaxdof.render_batch` take an instance, or a built-in's name (`as_method`:
+    `"soft"` is `Soft()`).
     """
 
     differentiable_in_radius: ClassVar[bool]
@@ -54,13 +61,20 @@ class AbstractMethod(eqx.Module):
         del radius, max_radius
         return self
 
-    @abc.abstractmethod
     def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        """Spread every pixel of `image` over its circle of radius `radius` (pixels)."""
+        self, image: ChannelsLast, radius: Radius, *, max_radius: float, depth: Depth | None = None
+    ) -> ChannelsLast:
+        """Spread every pixel of `image` over its circle of radius `radius` (pixels): `spread`, with
+        `depth` passed on only to a method that `uses_depth` (`None` to any other)."""
+        depth = depth if self.uses_depth else None
+        return self.spread(image, radius, max_radius=max_radius, depth=depth)
+
+    @abc.abstractmethod
+    def spread(
+        self, image: ChannelsLast, radius: Radius, *, max_radius: float, depth: Depth | None
+    ) -> ChannelsLast:
+        """The filter itself (see the class docstring); called by `__call__`."""
+
+    def _options(self) -> dict[str, Any]:
+        """The method's fields by name: its kernel's keyword options, each named once (a field)."""
+        return {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}

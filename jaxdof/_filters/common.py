@@ -10,9 +10,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
-from jaxtyping import Array, ArrayLike
+from jaxtyping import Array, ArrayLike, Float
 
 from .. import _tuning
+
+
+#: The image a method and its kernel filter: channels last, `(H, W, C)` (`jaxdof.coc_filter` adds
+#: the axis to a 2-D image). Beside `_custom_types.Radius`, in every kernel's signature.
+ChannelsLast = Float[Array, "h w c"]
 
 
 def is_concrete(*xs) -> bool:

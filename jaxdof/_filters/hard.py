@@ -7,10 +7,10 @@ from typing import ClassVar, final
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Float
 
+from .._custom_types import Radius
 from .base import AbstractMethod
-from .common import window_half_width
+from .common import ChannelsLast, window_half_width
 from .taps import gather_taps
 
 
@@ -23,9 +23,7 @@ def centre_offsets(max_radius: float) -> np.ndarray:
     return np.stack([oy[keep], ox[keep]], axis=-1).astype(np.int32)
 
 
-def hard_filter(
-    image: Float[Array, "h w c"], radius: Float[Array, "h w"], *, max_radius: float
-) -> Float[Array, "h w c"]:
+def hard_filter(image: ChannelsLast, radius: Radius, *, max_radius: float) -> ChannelsLast:
     """Energy-preserving hard-disc scatter of `image` (H, W, C) by per-pixel radii `<= max_radius`."""
     offsets = centre_offsets(max_radius)
     d2 = (offsets.astype(np.float64) ** 2).sum(-1)
@@ -66,13 +64,5 @@ class Hard(AbstractMethod):
 
     differentiable_in_radius: ClassVar[bool] = False
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        del depth
+    def spread(self, image, radius, *, max_radius, depth):
         return hard_filter(image, radius, max_radius=max_radius)

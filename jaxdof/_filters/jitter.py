@@ -29,8 +29,9 @@ from jax import lax
 from jaxtyping import Array, ArrayLike, Float, Int, PRNGKeyArray
 
 from .. import _tuning
+from .._custom_types import Radius
 from .base import AbstractMethod
-from .common import check_int, check_key, is_concrete, tap_offsets
+from .common import ChannelsLast, check_int, check_key, is_concrete, tap_offsets
 from .spans import crossover_for, spans_filter, spans_layout, use_spans
 from .taps import gather_taps
 
@@ -86,14 +87,14 @@ def count_below(
 
 
 def jitter_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
+    image: ChannelsLast,
+    radius: Radius,
     *,
     max_radius: float,
     samples: int,
     key: Array,
     path: str = "auto",
-) -> Float[Array, "h w c"]:
+) -> ChannelsLast:
     """Scatter with coverage estimated from `samples` jittered points per output pixel.
 
     `path`: `"dense"` (a gather over every tap), `"spans"` (row spans for the fully covered pixels,
@@ -208,15 +209,5 @@ class Jitter(AbstractMethod):
         self.samples = check_int("samples", samples, 1)
         self.key = check_key(key, "Jitter()", "jaxdof.Jitter(key=jax.random.key(0))")
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        del depth
-        return jitter_filter(
-            image, radius, max_radius=max_radius, samples=self.samples, key=self.key
-        )
+    def spread(self, image, radius, *, max_radius, depth):
+        return jitter_filter(image, radius, max_radius=max_radius, **self._options())

@@ -28,14 +28,15 @@ from jax import lax
 from jaxtyping import Array, Float, Int
 
 from .. import _tuning
+from .._custom_types import Radius
 from .._overlap import circle_pixel_overlap
 from .base import AbstractMethod
-from .common import check_int, level_index, tap_offsets, window_half_width
+from .common import ChannelsLast, check_int, level_index, tap_offsets, window_half_width
 from .tabulated import tabulated_filter
 
 
 def assign_levels(
-    radius: Float[Array, "h w"], layers: int, assignment: np.ndarray | None = None
+    radius: Radius, layers: int, assignment: np.ndarray | None = None
 ) -> tuple[Array, Array]:
     """Level index `(H, W)` int32 and level radius `(L,)` for each of `layers` levels.
 
@@ -135,8 +136,8 @@ def fft_length(n: int) -> int:
 
 
 def layered_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
+    image: ChannelsLast,
+    radius: Radius,
     *,
     max_radius: float,
     layers: int,
@@ -144,7 +145,7 @@ def layered_filter(
     sharp_level: bool = False,
     static_levels: np.ndarray | None = None,
     path: str = "auto",
-) -> Float[Array, "h w c"]:
+) -> ChannelsLast:
     """Sum over `layers` radius levels of (masked image) * (soft disc kernel).
 
     By FFT or by the direct sum, whichever `direct_is_cheaper` says (`path="fft"` / `"direct"`
@@ -277,54 +278,31 @@ class Layered(AbstractMethod):
             layers=self.layers,
             assignment=assignment,
             sharp_level=sharp_first_level(radius, assignment),
-            levels=level_radii(radius, assignment, self.layers),
+            static_levels=level_radii(radius, assignment, self.layers),
         )
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
+    def spread(self, image, radius, *, max_radius, depth):
         """The traced radius map: levels searched and averaged inside the computation."""
-        del depth
-        return layered_filter(image, radius, max_radius=max_radius, layers=self.layers)
+        return layered_filter(image, radius, max_radius=max_radius, **self._options())
 
 
 @final
 class _LayeredLevels(AbstractMethod):
     """`Layered` prepared on a concrete radius map: its levels, assigned once in numpy.
 
-    `assignment` (`(H, W)` int32) indexes `levels` (`(L,)`, pixels; the mean radius of each
+    `assignment` (`(H, W)` int32) indexes `static_levels` (`(L,)`, pixels; the mean radius of each
     level's pixels, radii `<= 1/2` as 0); `sharp_level`: level 0 holds only radii `<= 1/2` and is
-    copied instead of convolved. The `radius` passed at the call is not read again (it is the map
-    these were computed from), so there is no radius gradient.
+    copied instead of convolved. The fields are `layered_filter`'s options of those names. The
+    `radius` passed at the call is not read again (it is the map these were computed from), so
+    there is no radius gradient.
     """
 
     layers: int = eqx.field(static=True)
     assignment: Int[np.ndarray, "h w"]
     sharp_level: bool = eqx.field(static=True)
-    levels: Float[np.ndarray, " l"]
+    static_levels: Float[np.ndarray, " l"]
 
     differentiable_in_radius: ClassVar[bool] = False
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        del depth
-        return layered_filter(
-            image,
-            radius,
-            max_radius=max_radius,
-            layers=self.layers,
-            assignment=self.assignment,
-            sharp_level=self.sharp_level,
-            static_levels=self.levels,
-        )
+    def spread(self, image, radius, *, max_radius, depth):
+        return layered_filter(image, radius, max_radius=max_radius, **self._options())

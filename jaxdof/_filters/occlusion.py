@@ -9,11 +9,11 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Int
 
-from .._custom_types import DepthLike
+from .._custom_types import Depth, DepthLike, Radius
 from .base import AbstractMethod
-from .common import check_bool, check_depth_map, check_int
+from .common import ChannelsLast, check_bool, check_depth_map, check_int
 from .soft import soft_filter
 
 
@@ -21,7 +21,7 @@ from .soft import soft_filter
 DEFAULT_JUMP = 0.03
 
 
-def depth_layers(depth: Float[Array, "h w"], layers: int, jump: float = DEFAULT_JUMP) -> Array:
+def depth_layers(depth: Depth, layers: int, jump: float = DEFAULT_JUMP) -> Array:
     """Layer index `(H, W)` int32, `0` nearest, cut at the `layers - 1` largest relative depth gaps.
 
     Sort the log-depths of all pixels; a gap between consecutive values larger than
@@ -115,15 +115,15 @@ def _layer_sources(image, radius, layer, layers: int, fill: bool):
 
 
 def occlusion_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
+    image: ChannelsLast,
+    radius: Radius,
     *,
     max_radius: float,
     depth: DepthLike | None,
     layers: int,
     fill: bool,
     jump: float = DEFAULT_JUMP,
-) -> Float[Array, "h w c"]:
+) -> ChannelsLast:
     """Depth-ordered layered soft scatter, composited back to front (see the module docstring)."""
     h, w, c = image.shape
     if depth is None or layers == 1:
@@ -224,14 +224,7 @@ class Occlusion(AbstractMethod):
         self.layers = check_int("layers", layers, 1, 256)
         self.fill = check_bool("fill", fill)
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
+    def spread(self, image, radius, *, max_radius, depth):
         return occlusion_filter(
-            image, radius, max_radius=max_radius, depth=depth, layers=self.layers, fill=self.fill
+            image, radius, max_radius=max_radius, depth=depth, **self._options()
         )

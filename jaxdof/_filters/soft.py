@@ -39,10 +39,11 @@ import numpy as np
 from jax import lax
 from jax.core import ShapedArray
 from jax.interpreters import ad
-from jaxtyping import Array, Float
+from jaxtyping import Array
 
+from .._custom_types import Radius
 from .._overlap import _c, _horner, _num_terms
-from .common import half_width, pad_rows_cols, tap_offsets
+from .common import ChannelsLast, half_width, pad_rows_cols, tap_offsets
 
 
 def _offset_geometry(offsets: np.ndarray, dtype) -> tuple[Array, ...]:
@@ -375,9 +376,7 @@ def _soft_jvp(max_radius, primals, tangents):
     return _soft(image, radius, max_radius), d_out
 
 
-def soft_filter(
-    image: Float[Array, "h w c"], radius: Float[Array, "h w"], *, max_radius: float
-) -> Float[Array, "h w c"]:
+def soft_filter(image: ChannelsLast, radius: Radius, *, max_radius: float) -> ChannelsLast:
     """Exact soft-coverage scatter of `image` (H, W, C) by per-pixel radii, clamped to `max_radius`.
 
     Forward mode and reverse mode each cost about one more pass of the same shape as the filter

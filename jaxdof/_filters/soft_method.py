@@ -10,7 +10,6 @@ from __future__ import annotations
 from typing import ClassVar, final
 
 import equinox as eqx
-from jaxtyping import Array, Float
 
 from .base import AbstractMethod
 from .common import check_blades, check_rotation
@@ -66,18 +65,8 @@ class Soft(AbstractMethod):
         self.blades = check_blades(blades)
         self.rotation = check_rotation(rotation, self.blades, "Soft")
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        del depth
+    def spread(self, image, radius, *, max_radius, depth):
         if self.blades is None:
             # the dense gather, or row spans from SPANS_MIN_RADIUS on (same numbers, faster)
             return exact_soft_filter(image, radius, max_radius=max_radius)
-        return soft_polygon_filter(
-            image, radius, max_radius=max_radius, blades=self.blades, rotation=self.rotation
-        )
+        return soft_polygon_filter(image, radius, max_radius=max_radius, **self._options())

@@ -15,21 +15,16 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
 
-from .common import tap_offsets
+from .._custom_types import Radius
+from .common import ChannelsLast, tap_offsets
 from .shape import area_factor, polygon_pixel_overlap
 from .taps import gather_taps
 
 
 def soft_polygon_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
-    *,
-    max_radius: float,
-    blades: int,
-    rotation: float,
-) -> Float[Array, "h w c"]:
+    image: ChannelsLast, radius: Radius, *, max_radius: float, blades: int, rotation: float
+) -> ChannelsLast:
     """Exact-coverage scatter with a `blades`-gon aperture of circumradius `radius`."""
     dtype = image.dtype
     offsets = tap_offsets(max_radius)

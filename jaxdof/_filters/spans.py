@@ -64,8 +64,10 @@ R = 40 against issue 2's bound, 2e-5 of the image's range.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -73,7 +75,8 @@ from jax import lax
 from jaxtyping import Array, Float
 
 from .. import _tuning
-from .common import window_half_width
+from .._custom_types import Radius
+from .common import ChannelsLast, window_half_width
 from .soft import soft_filter, tap_weight
 
 
@@ -100,12 +103,8 @@ def crossover_for(samples: int, table: dict[int | float, float]) -> float:
 
 
 def exact_soft_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
-    *,
-    max_radius: float,
-    path: str = "auto",
-) -> Float[Array, "h w c"]:
+    image: ChannelsLast, radius: Radius, *, max_radius: float, path: str = "auto"
+) -> ChannelsLast:
     """The exact soft scatter by the dense gather or by row spans, whichever is faster.
 
     `path="auto"` picks spans when `max_radius >= SPANS_MIN_RADIUS`; `"dense"` and `"spans"` force
@@ -117,13 +116,13 @@ def exact_soft_filter(
 
 
 def spans_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
+    image: ChannelsLast,
+    radius: Radius,
     *,
     max_radius: float,
     partial: Callable[[Array, Array, Array], Array] | None = None,
     interior: Float[Array, "h w"] | None = None,
-) -> Float[Array, "h w c"]:
+) -> ChannelsLast:
     """The soft filter's exact scatter by row spans and boundary taps (module docstring).
 
     Same contract as `jaxdof._filters.soft.soft_filter`: `image` (H, W, C), `radius` (H, W) in
@@ -148,102 +147,144 @@ def spans_filter(
     rs = jnp.where(big, radius, 1)
     if interior is None:
         interior = 1 / (math.pi * rs * rs)
-    v = image * jnp.where(big, interior, 0)[..., None]
     sharp = jnp.where(big[..., None], jnp.zeros((), dtype), image)  # the identity part
-    # The integer geometry depends on r only through comparisons: no gradient flows through it.
-    rr = lax.stop_gradient(rs * rs)
     # Buffers are flat (padded pixels, C): one index per update, pixel (y, x) at y * wp + x.
     rows = (jnp.arange(h, dtype=jnp.int32) + pad) * wp
-    base = rows[:, None] + (jnp.arange(w, dtype=jnp.int32) + pad)[None, :]
-    skip = 2 * hp * wp  # an index past the end: the update is dropped
-    half = jnp.asarray(0.5, dtype)
-    zero = jnp.zeros((), dtype)
-    one = jnp.ones((), dtype)
-    two = jnp.asarray(2, dtype)
-    nothing = jnp.zeros_like(radius)
-
-    def full(jf, kk):
-        """Pixel (j, k), `j, k >= 0`, is fully covered; `kk = (k + 1/2)^2`. Exact, symmetric."""
-        return (jf + half) * (jf + half) + kk <= rr
-
-    def span(mf):
-        """`a_m`: the largest `j` with pixel (j, m) fully covered, -1 if none; float (H, W)."""
-        kk = (mf + half) * (mf + half)
-        a = jnp.floor(jnp.sqrt(jnp.maximum(rr - kk, zero)) - half)
-        # the square root's rounding, corrected by the exact predicate
-        a = jnp.where(full(a + 1, kk), a + 1, a)
-        a = jnp.where((a >= 0) & ~full(a, kk), a - 1, a)
-        return jnp.minimum(jnp.where(big, a, -one), jnp.asarray(wh, dtype))
-
-    def weight(jf, kf):
-        """Exact normalised weight of pixel (j, k) (float maps, `j, k >= 0`), by `tap_weight`."""
-        ax, ay = jnp.maximum(jf - half, zero), jnp.maximum(kf - half, zero)
-        mult = jnp.where(jf == 0, two, one) * jnp.where(kf == 0, two, one)
-        return tap_weight(ax, jf + half, ay, kf + half, mult, nothing, radius)
-
-    def add(buf, idx, upd):
-        # Out-of-range indices are dropped: that is how a duplicate (row -0, column -0, the
-        # centre pixel on the left side) is skipped. Every other index is inside the padding.
-        return buf.at[idx].add(upd, mode="drop")
-
-    def spans_step(carry, m):
-        """Row spans of rows +m and -m (row 0 once): two marks per row."""
-        boundary, marks = carry
-        a = span(m.astype(dtype))
-        ai = a.astype(jnp.int32)
-        val = v * (a >= 0).astype(dtype)[..., None]
-        twin = jnp.where(m == 0, skip, 0)  # row -0 is row +0: send it out of the buffer
-        for row in (base + m * wp, base - m * wp + twin):
-            marks = add(marks, row - ai, val)
-            marks = add(marks, row + ai + 1, -val)
-        return (boundary, marks), a
-
-    def full_step(carry, m):
-        """Spans, then the partial pixels of rows +-m (sides) and columns +-m (caps)."""
-        (boundary, marks), a = spans_step(carry, m)
-        mf = m.astype(dtype)
-        mm = jnp.full_like(a, mf)
-        twin = jnp.where(m == 0, skip, 0)
-        j0 = jnp.maximum(a + 1, mf)  # sides: j = +-(j0 + t), t < TAPS, in rows +-m
-        k0 = jnp.maximum(a + 1, mf + 1)  # caps: k = +-(k0 + t), in columns +-m
-        taps = []  # (target, dy, dx, shared weighted source or None) of every boundary pixel
-        for t in range(TAPS):
-            j = j0 + t
-            ji = j.astype(jnp.int32)
-            side = None if partial else image * weight(j, mm)[..., None]  # pyright: ignore
-            centre = jnp.where(ji == 0, skip, 0)  # (0, 0) is on the right side only
-            for sy, row in ((1, base + m * wp), (-1, base - m * wp + twin)):
-                taps += [(row + ji, sy * mm, j, side), (row - ji + centre, sy * mm, -j, side)]
-            k = k0 + t
-            ki = k.astype(jnp.int32) * wp
-            cap = None if partial else image * weight(mm, k)[..., None]  # pyright: ignore
-            for sx, col in ((1, base + m), (-1, base - m + twin)):  # column -0 is column +0
-                taps += [(col + ki, k, sx * mm, cap), (col - ki, -k, sx * mm, cap)]
-        if partial is None:  # the soft weight is shared by the mirrored pixels
-            for target, _, _, upd in taps:
-                boundary = add(boundary, target, upd)
-        else:  # one weight per pixel, all of the step's taps at once (a smaller program)
-            target, dy, dx = (jnp.stack([tap[i] for tap in taps]) for i in range(3))
-            wgt = partial(target, dy, dx)
-            boundary = add(boundary, target, image[None] * wgt[..., None])
-        return (boundary, marks), None
-
-    def scan(step, carry, lo, hi):
-        if hi < lo:
-            return carry
-        body = jax.checkpoint(lambda cr, m: (step(cr, m)[0], None), prevent_cse=False)
-        return lax.scan(body, carry, jnp.arange(lo, hi + 1, dtype=jnp.int32))[0]
-
+    disc = _Discs(
+        image=image,
+        radius=radius,
+        big=big,
+        # The integer geometry depends on r only through comparisons: no gradient through it.
+        rr=lax.stop_gradient(rs * rs),
+        v=image * jnp.where(big, interior, 0)[..., None],
+        base=rows[:, None] + (jnp.arange(w, dtype=jnp.int32) + pad)[None, :],
+        wp=wp,
+        skip=2 * hp * wp,  # an index past the end: the update is dropped
+        wh=wh,
+        partial=partial,
+    )
     # Rows past the diagonal hold no side pixels and their columns no cap pixels: the pixel
     # (m, m) is touched only while 2 (m - 1/2)^2 < r^2, a cap pixel (m, m + 1) only while
     # (m - 1/2)^2 + (m + 1/2)^2 < r^2. Past it, only spans.
     diag = min(wh, math.ceil(max_radius / math.sqrt(2) + 0.5) - 1)
     carry = (jnp.zeros((hp * wp, c), dtype), jnp.zeros((hp * wp, c), dtype))
-    carry = scan(full_step, carry, 0, diag)
-    carry = scan(spans_step, carry, diag + 1, wh)
+    carry = _scan(functools.partial(_boundary_step, disc), carry, 0, diag)
+    carry = _scan(functools.partial(_spans_step, disc), carry, diag + 1, wh)
     boundary, marks = (b.reshape(hp, wp, c) for b in carry)
     out = boundary + jnp.cumsum(marks, axis=1)
     return out[pad : pad + h, pad : pad + w] + sharp
+
+
+class _Discs(NamedTuple):
+    """Every source's disc, as each step of `spans_filter`'s scan reads it (all `(H, W)` maps of
+    the sources but `image` and `v`, `(H, W, C)`)."""
+
+    image: Array
+    radius: Array  # pixels, clamped to `max_radius`
+    big: Array  # `radius > 1/2`: not the identity
+    rr: Array  # `r^2` (1 for the identity), no gradient: the integer geometry's only input
+    v: Array  # `image * interior`: what a fully covered pixel receives
+    base: Array  # each source's index in the flat padded buffers (layout of `spans_layout`)
+    wp: int  # padded row length: one row down is `+ wp`
+    skip: int  # an index past the end of the buffers: the update is dropped
+    wh: int  # the window's half-width: no span is longer
+    partial: Callable[[Array, Array, Array], Array] | None  # see `spans_filter`
+
+    def full(self, jf, kk):
+        """Pixel (j, k), `j, k >= 0`, is fully covered; `kk = (k + 1/2)^2`. Exact, symmetric."""
+        half = jnp.asarray(0.5, self.image.dtype)
+        return (jf + half) * (jf + half) + kk <= self.rr
+
+    def span(self, mf):
+        """`a_m`: the largest `j` with pixel (j, m) fully covered, -1 if none; float (H, W)."""
+        dtype = self.image.dtype
+        half, zero, one = jnp.asarray(0.5, dtype), jnp.zeros((), dtype), jnp.ones((), dtype)
+        kk = (mf + half) * (mf + half)
+        a = jnp.floor(jnp.sqrt(jnp.maximum(self.rr - kk, zero)) - half)
+        # the square root's rounding, corrected by the exact predicate
+        a = jnp.where(self.full(a + 1, kk), a + 1, a)
+        a = jnp.where((a >= 0) & ~self.full(a, kk), a - 1, a)
+        return jnp.minimum(jnp.where(self.big, a, -one), jnp.asarray(self.wh, dtype))
+
+    def weight(self, jf, kf):
+        """Exact normalised weight of pixel (j, k) (float maps, `j, k >= 0`), by `tap_weight`."""
+        dtype = self.image.dtype
+        half, zero, one = jnp.asarray(0.5, dtype), jnp.zeros((), dtype), jnp.ones((), dtype)
+        two = jnp.asarray(2, dtype)
+        ax, ay = jnp.maximum(jf - half, zero), jnp.maximum(kf - half, zero)
+        mult = jnp.where(jf == 0, two, one) * jnp.where(kf == 0, two, one)
+        nothing = jnp.zeros_like(self.radius)
+        wgt = tap_weight(ax, jf + half, ay, kf + half, mult, nothing, self.radius)
+        assert isinstance(wgt, Array)  # without `with_arc`, one array
+        return wgt
+
+
+def _add(buf: Array, idx: Array, upd: Array) -> Array:
+    # Out-of-range indices are dropped: that is how a duplicate (row -0, column -0, the centre
+    # pixel on the left side) is skipped. Every other index is inside the padding.
+    return buf.at[idx].add(upd, mode="drop")
+
+
+def _spans_step(disc: _Discs, carry, m):
+    """Row spans of rows +m and -m (row 0 once): two marks per row."""
+    boundary, marks = carry
+    a = disc.span(m.astype(disc.image.dtype))
+    ai = a.astype(jnp.int32)
+    val = disc.v * (a >= 0).astype(disc.image.dtype)[..., None]
+    twin = jnp.where(m == 0, disc.skip, 0)  # row -0 is row +0: send it out of the buffer
+    for row in (disc.base + m * disc.wp, disc.base - m * disc.wp + twin):
+        marks = _add(marks, row - ai, val)
+        marks = _add(marks, row + ai + 1, -val)
+    return (boundary, marks), a
+
+
+def _boundary_step(disc: _Discs, carry, m):
+    """Spans, then the partial pixels of rows +-m (sides) and columns +-m (caps)."""
+    (boundary, marks), a = _spans_step(disc, carry, m)
+    taps = _boundary_taps(disc, a, m)
+    if disc.partial is None:  # the soft weight is shared by the mirrored pixels
+        for target, _, _, upd in taps:
+            boundary = _add(boundary, target, upd)
+    else:  # one weight per pixel, all of the step's taps at once (a smaller program)
+        target, dy, dx = (jnp.stack([tap[i] for tap in taps]) for i in range(3))
+        wgt = disc.partial(target, dy, dx)
+        boundary = _add(boundary, target, disc.image[None] * wgt[..., None])
+    return (boundary, marks), None
+
+
+def _boundary_taps(disc: _Discs, a: Array, m: Array) -> list:
+    """`(target, dy, dx, weighted source or None)` of every boundary pixel of rows +-m (sides)
+    and columns +-m (caps), given the span `a = a_m`; the soft weighted source (shared by the
+    mirrored pixels) only without `partial`."""
+    base, wp, skip = disc.base, disc.wp, disc.skip
+    mf = m.astype(disc.image.dtype)
+    mm = jnp.full_like(a, mf)
+    twin = jnp.where(m == 0, skip, 0)
+    j0 = jnp.maximum(a + 1, mf)  # sides: j = +-(j0 + t), t < TAPS, in rows +-m
+    k0 = jnp.maximum(a + 1, mf + 1)  # caps: k = +-(k0 + t), in columns +-m
+    taps = []
+    for t in range(TAPS):
+        j = j0 + t
+        ji = j.astype(jnp.int32)
+        side = None if disc.partial else disc.image * disc.weight(j, mm)[..., None]
+        centre = jnp.where(ji == 0, skip, 0)  # (0, 0) is on the right side only
+        for sy, row in ((1, base + m * wp), (-1, base - m * wp + twin)):
+            taps += [(row + ji, sy * mm, j, side), (row - ji + centre, sy * mm, -j, side)]
+        k = k0 + t
+        ki = k.astype(jnp.int32) * wp
+        cap = None if disc.partial else disc.image * disc.weight(mm, k)[..., None]
+        for sx, col in ((1, base + m), (-1, base - m + twin)):  # column -0 is column +0
+            taps += [(col + ki, k, sx * mm, cap), (col - ki, -k, sx * mm, cap)]
+    return taps
+
+
+def _scan(step, carry, lo: int, hi: int):
+    """`step` over the row offsets `lo .. hi`, checkpointed: the body is recomputed in the
+    backward pass, not stored."""
+    if hi < lo:
+        return carry
+    body = jax.checkpoint(lambda cr, m: (step(cr, m)[0], None), prevent_cse=False)
+    return lax.scan(body, carry, jnp.arange(lo, hi + 1, dtype=jnp.int32))[0]
 
 
 def spans_layout(h: int, w: int, max_radius: float) -> tuple[int, int, int]:

@@ -20,11 +20,19 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jaxtyping import Array, Float
+from jaxtyping import Array
 
 from .. import _tuning
+from .._custom_types import Radius
 from .base import AbstractMethod
-from .common import check_blades, check_int, check_rotation, tap_offsets, window_half_width
+from .common import (
+    ChannelsLast,
+    check_blades,
+    check_int,
+    check_rotation,
+    tap_offsets,
+    window_half_width,
+)
 from .shape import row_extent
 from .soft import mirrored_scatter
 from .spans import crossover_for, spans_filter, use_spans
@@ -66,15 +74,15 @@ def _count_rows(y0: Array, c0: Array | None, r: Array, blades, rotation: float, 
 
 
 def supersample_filter(
-    image: Float[Array, "h w c"],
-    radius: Float[Array, "h w"],
+    image: ChannelsLast,
+    radius: Radius,
     *,
     max_radius: float,
     samples: int,
     blades: int | None = None,
     rotation: float = 0.0,
     path: str = "auto",
-) -> Float[Array, "h w c"]:
+) -> ChannelsLast:
     """Scatter with `samples x samples` supersampled coverage; energy-preserving.
 
     `path` (the disc only; a polygon is always gathered): `"dense"` (a gather over every tap, one
@@ -197,20 +205,5 @@ class Supersample(AbstractMethod):
         self.blades = check_blades(blades)
         self.rotation = check_rotation(rotation, self.blades, "Supersample")
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        del depth
-        return supersample_filter(
-            image,
-            radius,
-            max_radius=max_radius,
-            samples=self.samples,
-            blades=self.blades,
-            rotation=self.rotation,
-        )
+    def spread(self, image, radius, *, max_radius, depth):
+        return supersample_filter(image, radius, max_radius=max_radius, **self._options())

@@ -24,7 +24,7 @@ from jaxtyping import Array, ArrayLike, Float, Int
 
 from .. import _tuning
 from .base import AbstractMethod
-from .common import half_width, pad_rows_cols, tap_offsets, unique_with_index
+from .common import ChannelsLast, half_width, pad_rows_cols, tap_offsets, unique_with_index
 from .soft import _offset_geometry, mirror_classes, mirrored_scatter, tap_weight
 
 
@@ -44,12 +44,12 @@ def _look_up(row: Array, idx: Array) -> Array:
 
 
 def tabulated_filter(
-    image: Float[Array, "h w c"],
+    image: ChannelsLast,
     *,
     max_radius: float,
     levels: Float[ArrayLike, " l"],
     index: Int[ArrayLike, "h w"],
-) -> Float[Array, "h w c"]:
+) -> ChannelsLast:
     """The soft scatter of `image` for the radius map `levels[index]` (clamped to `max_radius`).
 
     Concrete levels and index from `auto`; traced ones from `layered` (its direct path), whose
@@ -114,13 +114,5 @@ class Tabulated(AbstractMethod):
 
     differentiable_in_radius: ClassVar[bool] = False
 
-    def __call__(
-        self,
-        image: Float[Array, "h w c"],
-        radius: Float[Array, "h w"],
-        *,
-        max_radius: float,
-        depth: Float[Array, "h w"] | None = None,
-    ) -> Float[Array, "h w c"]:
-        del radius, depth
-        return tabulated_filter(image, max_radius=max_radius, levels=self.levels, index=self.index)
+    def spread(self, image, radius, *, max_radius, depth):
+        return tabulated_filter(image, max_radius=max_radius, **self._options())

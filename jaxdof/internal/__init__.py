@@ -31,6 +31,8 @@ What is here (re-exports only):
   `kernel_variance` (the filter kernel's variance, under `jaxdof.footprint_prefilter`), and the
   study-only candidates that lost to `footprint_prefilter` against ray tracing
   (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
+- **Overlap**: `textbook_overlap`, the inclusion-exclusion form of the circle-pixel overlap that
+  `jaxdof.circle_pixel_overlap` avoids (its float32 cancellation, measured by `fits/stability.py`).
 """
 
 # A renamed re-export is one ruff cannot tell from an unused import: hence the noqa below.
@@ -76,3 +78,4 @@ from .._fit.adequacy import (  # noqa: F401
     rounding_noise as rounding_noise,
 )
 from ._study import footprint_radius as footprint_radius, pixel_prefilter as pixel_prefilter
+from ._textbook import textbook_overlap as textbook_overlap
