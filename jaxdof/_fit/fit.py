@@ -48,6 +48,7 @@ from .strategies import (
     start_lenses,
     window_for,
 )
+from .tiles import Tiles, choose_tiles, tiled_problem, use_tiles
 from .verbose import _with_verbose
 
 
@@ -375,6 +376,16 @@ def _infinity_notes(result: FitResult, spec) -> list[str]:
     return notes
 
 
+def _tiles_note(tiles: Tiles, photo_pixels: int) -> str:
+    """What the fit on tiles used, in words."""
+    n = len(tiles.corners)
+    return (
+        f"fitted on {n} tiles of {tiles.side} x {tiles.side} px ({n * tiles.side**2} of "
+        f"{photo_pixels} photo pixels), chosen for their information about the lens (halo "
+        f"{tiles.halo} px; tiles=None fits the whole frame)"
+    )
+
+
 def _inconsistency_note(result: FitResult) -> str:
     """The adequacy test's numbers, in words, for a fit it found inconsistent."""
     a = {k: float(np.asarray(v)) for k, v in result.adequacy.items()}
@@ -514,6 +525,7 @@ def fit_lens(
     pyramid: int | None = None,
     downsample: int | None = None,
     border: bool | str | int = "auto",
+    tiles: str | int | bool | None = "auto",
 ) -> FitResult:
     r"""Recover lens parameters from defocused photos of a scene with known image and depth.
 
@@ -600,6 +612,16 @@ def fit_lens(
       (multiplied into `weight`), so it shares the compiled solve. If it would leave no pixel
       with non-zero weight, the fit keeps every pixel and says so in `message`.
       `FitResult.border` is the band used (px), `FitResult.pixels_used` the pixels fitted.
+    - `tiles`: fit a large photo on informative tiles instead of the whole frame. `"auto"`
+      (default): photos of more than 2^20 pixels are fitted on square tiles (32 px, or twice
+      the window's reach where that is more) holding 2^17 pixels in all (per photo), chosen greedily for the most information about the free
+      parameters at the `init` lens (D-optimal, from the Jacobian on a reduced copy), away from
+      depth edges unless the model renders occlusion; an int: that budget of pixels (at any
+      photo size); `None` or `False`: the whole frame. Each tile keeps a halo of the window's
+      reach with weight 0 (the border rule, per tile), so its pixels' residuals are exactly the
+      whole-frame fit's; the standard errors are those of the pixels used. `FitResult.tiles`
+      lists the tiles (`(row, column, height, width)`, photo pixels); `jaxdof/_fit/tiles.py`
+      has the method.
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `status` (a
     `jaxdof.RESULTS` member) and `message`, when the best start did not converge, when distinct
@@ -646,6 +668,7 @@ def fit_lens(
     show in such a test; `fits/results/adequacy.md` measures both.
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
+    given = dict(locals())  # the call, to refit on tiles chosen for a larger window
     forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)
     free, shared = _check_names(free, shared)
     check_differentiable(forward)
@@ -657,6 +680,7 @@ def fit_lens(
     max_steps, n_starts = _check_options(max_steps, starts, verbose, max_radius, free)
     band = check_border(border)
     p = prepare_problem(image, depth, targets, init, weight, forward, free, shared, exposure)
+    p_full_pixels = int(p.photo[0] * p.photo[1])
     levels = _check_pyramid(pyramid, p.photo)
     solver, coarse_solver = _solvers(solver, p.dtype, verbose)
     rows0 = start_lenses(p.b, p.d, free=free, starts=n_starts, fcap=p.fcap)
@@ -664,6 +688,10 @@ def fit_lens(
         window = window_for(forward.max_circle(rows0, p.d), float(max(p.photo)))
     else:
         window = float(max_radius)
+    budget = use_tiles(tiles, p.photo)
+    chosen = None if budget is None else choose_tiles(p, forward, rows0, window, budget)
+    if chosen is not None:
+        p, band = tiled_problem(p, chosen), 0  # each tile's halo is its border band
     if levels is None:
         # From one start the init is refined at full resolution anyway (`_coarse_to_fine`), so
         # coarse levels would only add work: measured 0.5-0.7x the full-resolution fit's speed
@@ -682,4 +710,9 @@ def fit_lens(
     except _SOLVER_ERRORS as err:
         return _failed(run, err, window)
     result = dataclasses.replace(result, border=used)
+    if chosen is not None:
+        if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
+            return fit_lens(**{**given, "max_radius": window, "tiles": budget})
+        notes.append(_tiles_note(chosen, p_full_pixels))
+        result = dataclasses.replace(result, tiles=chosen.boxes)
     return _verdict(run, result, info, r_final, window, notes, allow_degenerate)

@@ -217,6 +217,8 @@ class FitResult(eqx.Module):
       `stderr`, `focus_power_stderr` and `covariance` are already multiplied by `inflation`
       (`inflation^2`): see `stderr_kind`.
     - `levels`: pyramid levels `fit_lens` solved on (1: full resolution only; see its `pyramid`).
+    - `tiles`: the photo tiles fitted, `(row, column, height, width)` of each (photo pixels), when
+      `fit_lens` fitted on informative tiles (see its `tiles`); `()`: the whole frame.
 
     `message` is the status's message and the notes; `stderr_kind` says what the standard errors
     measure (`"noise"`, or `"tile spread"` when inflated); `lens` is the first target's lens;
@@ -243,6 +245,7 @@ class FitResult(eqx.Module):
     max_radius: float = eqx.field(static=True, default=0.0)
     border: int = eqx.field(static=True, default=0)
     levels: int = eqx.field(static=True, default=1)
+    tiles: tuple[tuple[int, int, int, int], ...] = eqx.field(static=True, default=())
 
     @property
     def lens(self) -> ThinLens:
@@ -333,7 +336,7 @@ class FitResult(eqx.Module):
         `pixel_pitch`, m) and its `stderr` (free fields only); `lenses`, one dict per target with
         its own `stderr`, `focus_power` (diopters) and `focus_power_stderr`; `success`, `status`
         (the `RESULTS` member's name), `message`, `steps`, `loss`, `sigma`, `condition`,
-        `max_radius` (px), `pixels_used`, `border` (px), `levels`, `adequacy` (the test's
+        `max_radius` (px), `pixels_used`, `border` (px), `levels`, `tiles`, `adequacy` (the test's
         numbers, `adequate` a bool), `stderr_kind`, `names`, `covariance` (rows
         and columns in the order of `names`), `gain` and `offset` (per target). Numbers are the
         shortest decimals that round-trip the arrays' precision; NaN and inf become `None`.
@@ -368,6 +371,7 @@ class FitResult(eqx.Module):
             "pixels_used": int(self.pixels_used),
             "border": int(self.border),
             "levels": int(self.levels),
+            "tiles": [list(box) for box in self.tiles],
             "adequacy": {
                 k: bool(v) if k == "adequate" else _json_float(v) for k, v in self.adequacy.items()
             },

@@ -1,0 +1,254 @@
+r"""Informative tiles: fit a large photo on a few full-resolution tiles chosen by what they tell
+about the lens.
+
+Most pixels of a photo say little about the lens (flat regions; pixels whose circle barely moves
+with the parameters), and the cost of a fit grows with the pixels rendered. For a photo above
+`TILES_ABOVE` pixels `fit_lens` fits on tiles instead:
+
+1. **Information.** The photo, image, depth and weights are box-averaged (the pyramid's
+   `_downsample`) until the longer side is at most `SCOUT_SIDE` px, and the Jacobian `J` of the
+   weighted residual with respect to the free parameters is evaluated there at the `init` lens
+   (one compiled `restate`: `P` forward-mode passes over a small image). Each candidate tile's
+   Fisher information is the sum of `J_p J_p^T` over its pixels (every target and channel),
+   times the area ratio: the information the full-resolution pixels of the tile carry about the
+   parameters, up to the noise variance, which is common to all tiles.
+2. **Choice.** Candidates are the cells of a grid of `side x side` photo pixels (`SIDE`, or
+   twice the halo where that is more) inside the band
+   that light from outside the frame reaches (each tile with its halo must lie in the frame).
+   A tile whose crop (interior and halo) holds a depth edge (`jaxdof.depth_edges`) is left out
+   unless the forward model renders occlusion (`method.uses_depth`): the soft model cannot
+   explain light blocked at an edge, and those pixels bias the lens. From the rest the tiles are
+   picked greedily for D-optimality: each step adds the tile that most increases
+   `log det(M + I_k)`, `M` the information chosen so far (plus a ridge of `1e-9` of the
+   candidates' mean trace, so that the first tiles fill the directions one by one). This favours
+   tiles that determine what the others do not (other depths, other circle sizes), not just the
+   most textured ones, until `budget` interior pixels are chosen.
+3. **Mosaic.** The tiles, each with a halo of the window's reach (`forward.border_band`), are laid
+   side by side in one image (rows of crops). Light from a neighbour in the mosaic reaches only
+   into a tile's halo, and the halo has weight 0 (the border rule, per tile), so the residual of
+   every interior pixel is exactly that of the full-frame fit. The fit then runs unchanged on the
+   mosaic: its pyramid, starts, window policy, statistics and adequacy test (whose tiles then
+   cover groups of photo tiles: independent parts of the photo).
+
+The standard errors are those of the pixels used; `FitResult.tiles` lists the tiles
+`(row, column, height, width)` of their interiors in photo pixels.
+
+Source: D-optimal subset selection (Kiefer and Wolfowitz 1959; greedy D-optimal designs, e.g.
+Atkinson, Donev and Tobias, "Optimum Experimental Designs, with SAS", 2007, ch. 12).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .._corrections import depth_edges
+from .layout import pack
+from .prepare import Problem
+from .residual import _Model
+from .solve import restate, run_stage
+from .strategies import _downsample, window_for
+
+
+#: Photos with more pixels than this are fitted on tiles by default (`tiles="auto"`).
+TILES_ABOVE = 1 << 20
+#: The default budget: interior pixels of all tiles together (per target).
+BUDGET = 1 << 17
+#: The smallest interior side of a tile (photo pixels); it is at least twice the halo (the
+#: window's reach), so that the interiors are at least a quarter of the pixels rendered.
+SIDE = 32
+#: The longer side (pixels) of the reduced photo on which the information is computed.
+SCOUT_SIDE = 512
+
+
+@dataclasses.dataclass(frozen=True)
+class Tiles:
+    """Chosen tiles: interiors' top-left corners `(row, column)` (photo pixels), their `side`,
+    the `halo` around each (photo pixels), and the photo's `(H, W)`."""
+
+    corners: tuple[tuple[int, int], ...]
+    side: int
+    halo: int
+    photo: tuple[int, int]
+
+    @property
+    def boxes(self) -> tuple[tuple[int, int, int, int], ...]:
+        """`(row, column, height, width)` of every interior (photo pixels)."""
+        return tuple((r, c, self.side, self.side) for r, c in self.corners)
+
+    @property
+    def cols(self) -> int:
+        return math.ceil(math.sqrt(len(self.corners)))
+
+    def mosaic(self, x: np.ndarray, s: int, axis: int, fill) -> np.ndarray:
+        """The crops (interior and halo) of `x` laid out in rows of `cols`: `x`'s spatial axes
+        at `axis, axis + 1` are `s` times the photo's (the image with `downsample = s`)."""
+        crop = (self.side + 2 * self.halo) * s
+        n, cols = len(self.corners), self.cols
+        rows = math.ceil(n / cols)
+        shape = list(x.shape)
+        shape[axis], shape[axis + 1] = rows * crop, cols * crop
+        out = np.full(shape, fill, x.dtype)
+        for i, (r, c) in enumerate(self.corners):
+            r0, c0 = (r - self.halo) * s, (c - self.halo) * s
+            src = [slice(None)] * x.ndim
+            src[axis], src[axis + 1] = slice(r0, r0 + crop), slice(c0, c0 + crop)
+            dst = [slice(None)] * x.ndim
+            rr, cc = divmod(i, cols)
+            dst[axis] = slice(rr * crop, (rr + 1) * crop)
+            dst[axis + 1] = slice(cc * crop, (cc + 1) * crop)
+            out[tuple(dst)] = x[tuple(src)]
+        return out
+
+    def interior_mask(self) -> np.ndarray:
+        """`(H_m, W_m)` of the mosaic (photo pixels): 1 in the interiors, 0 in halos and gaps."""
+        crop = self.side + 2 * self.halo
+        one = np.zeros((crop, crop))
+        one[self.halo : self.halo + self.side, self.halo : self.halo + self.side] = 1
+        ones = np.broadcast_to(one, (len(self.corners), crop, crop))
+        cols, n = self.cols, len(self.corners)
+        rows = math.ceil(n / cols)
+        out = np.zeros((rows * crop, cols * crop))
+        for i in range(n):
+            rr, cc = divmod(i, cols)
+            out[rr * crop : (rr + 1) * crop, cc * crop : (cc + 1) * crop] = ones[i]
+        return out
+
+
+def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
+    """The pixel budget of a fit on tiles, or None for the whole frame: `tiles` is `"auto"`
+    (tiles with `BUDGET` when the photo has more than `TILES_ABOVE` pixels), `None`/`False`
+    (the whole frame) or a positive int (a budget of interior pixels)."""
+    if tiles is None or tiles is False:
+        return None
+    if isinstance(tiles, str):
+        if tiles != "auto":
+            raise ValueError(f"tiles must be 'auto', None/False or a pixel budget, got {tiles!r}")
+        return BUDGET if photo[0] * photo[1] > TILES_ABOVE else None
+    if isinstance(tiles, bool) or not isinstance(tiles, (int, np.integer)) or tiles <= 0:
+        raise ValueError(
+            f"tiles must be 'auto', None/False or a positive pixel budget, got {tiles!r}"
+        )
+    return int(tiles)
+
+
+def _scout(p: Problem, forward, rows0: np.ndarray):
+    """The problem box-averaged to at most `SCOUT_SIDE` px: its arrays and the factor `q`."""
+    level = (p.image, p.depth, p.targets, p.sqrt_w, p.b)
+    q = 1
+    while max(level[2].shape[1:3]) > SCOUT_SIDE:
+        level = _downsample(*level, p.ratio)
+        q *= 2
+    return level, q
+
+
+def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarray, int]:
+    """`(h, w, P, P)`: each reduced pixel's Fisher information about the free parameters (in the
+    solver's coordinates, unit noise) at the first start (`init`), and the reduction factor."""
+    (im, dep, tg, sw, b), q = _scout(p, forward, rows0)
+    layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
+    rows = np.asarray(rows0[:1], np.float64).copy()
+    rows[..., 3] = rows[..., 3] * q
+    window = window_for(
+        forward.max_circle(rows, np.asarray(dep, np.float64)), float(max(tg.shape[1:3]))
+    )
+    spec = p.spec
+    model = _Model(spec.n_targets, window, spec.exposure, forward, len(spec.used))
+    y0 = pack(rows0[:1].astype(p.dtype), p.layout, spec.exposure)[0]
+    _, _, jac, _ = run_stage("restate", restate, model, y0, (im, dep, tg, sw, layout))
+    jac = np.asarray(jac, np.float64)[:, list(spec.used)]
+    t, h, w = tg.shape[:3]
+    jac = jac.reshape(t, h, w, -1, jac.shape[-1])  # (T, h, w, C, P)
+    return np.einsum("thwci,thwcj->hwij", jac, jac), q
+
+
+def _box_sums(x: np.ndarray, size: int, starts_r, starts_c) -> np.ndarray:
+    """Sums of `x` (`(H, W, ...)`) over the `size x size` boxes with top-left corners at every
+    pair of `starts_r` x `starts_c` (an integral image)."""
+    c = np.cumsum(np.cumsum(x, axis=0), axis=1)
+    c = np.pad(c, [(1, 0), (1, 0)] + [(0, 0)] * (x.ndim - 2))
+    r0, c0 = np.asarray(starts_r)[:, None], np.asarray(starts_c)[None, :]
+    r1, c1 = r0 + size, c0 + size
+    return c[r1, c1] - c[r0, c1] - c[r1, c0] + c[r0, c0]
+
+
+def choose_tiles(
+    p: Problem, forward, rows0: np.ndarray, window: float, budget: int
+) -> Tiles | None:
+    """The tiles of a fit on `budget` interior pixels (module docstring), or None when the
+    photo holds too few candidates to be worth it (fewer than twice the tiles wanted)."""
+    hh, ww = p.photo[:2]
+    halo = int(forward.border_band(window))
+    # At least twice the halo, so that interiors are at least a quarter of the pixels rendered.
+    side = max(SIDE, -(-2 * halo // 8) * 8)
+    want = max(1, budget // (side * side))
+    starts_r = np.arange(halo, hh - halo - side + 1, side)
+    starts_c = np.arange(halo, ww - halo - side + 1, side)
+    if len(starts_r) * len(starts_c) < 2 * want:
+        return None
+    info, q = pixel_information(p, forward, rows0)
+    # Each candidate's information: the reduced pixels under it (side / q per axis, at least 1),
+    # times q^2 (the full-resolution pixels each reduced one stands for).
+    k = max(side // q, 1)
+    hq, wq = info.shape[:2]
+    rq = np.minimum(starts_r // q, hq - k)
+    cq = np.minimum(starts_c // q, wq - k)
+    cand = _box_sums(info, k, rq, cq) * (side * side / (k * k))  # (nr, nc, P, P)
+    usable = np.ones(cand.shape[:2], bool)
+    method = getattr(forward, "method", None)
+    if not getattr(method, "uses_depth", False):
+        edges = depth_edges(np.asarray(p.depth, np.float64)).astype(np.float64)
+        s = p.ratio
+        crop = (side + 2 * halo) * s
+        n_edge = _box_sums(edges, crop, (starts_r - halo) * s, (starts_c - halo) * s)
+        if np.sum(n_edge == 0) >= want:
+            usable = n_edge == 0
+    corners = [(int(r), int(c)) for r in starts_r for c in starts_c]
+    mats = cand.reshape(-1, *cand.shape[2:])
+    keep = usable.reshape(-1)
+    chosen = _greedy_d_optimal(mats, keep, want)
+    picked = sorted(corners[i] for i in chosen)
+    return Tiles(tuple(picked), side, halo, (hh, ww))
+
+
+def _greedy_d_optimal(mats: np.ndarray, keep: np.ndarray, want: int) -> list[int]:
+    """Indices of `want` matrices among `mats` `(K, P, P)` (those with `keep`), added one at a
+    time, each maximising `log det` of the running sum plus a small ridge."""
+    n_p = mats.shape[-1]
+    trace = np.trace(mats, axis1=1, axis2=2)
+    ridge = 1e-9 * max(float(np.mean(trace[keep])) if keep.any() else 0.0, 1e-300)
+    m = ridge * np.eye(n_p)
+    free = keep.copy()
+    chosen: list[int] = []
+    for _ in range(min(want, int(keep.sum()))):
+        _, logdet = np.linalg.slogdet(m[None] + mats)
+        logdet = np.where(free, logdet, -np.inf)
+        i = int(np.argmax(logdet))
+        chosen.append(i)
+        free[i] = False
+        m = m + mats[i]
+    return chosen
+
+
+def tiled_problem(p: Problem, tiles: Tiles) -> Problem:
+    """`p` on the mosaic of `tiles`: image and depth crops (at `downsample`'s resolution),
+    target crops, and weights that are the user's times 1 in the interiors (0 in the halos)."""
+    s = p.ratio
+    far = float(np.max(p.depth[np.isfinite(p.depth)])) if np.isfinite(p.depth).any() else 1.0
+    image = tiles.mosaic(p.image, s, 0, 0)
+    depth = tiles.mosaic(p.depth, s, 0, far)
+    targets = tiles.mosaic(p.targets, 1, 1, 0)
+    sqrt_w = tiles.mosaic(np.broadcast_to(p.sqrt_w, p.targets.shape), 1, 1, 0)
+    mask = tiles.interior_mask()
+    mask = mask[None, :, :, None] if sqrt_w.ndim == 4 else mask[None]
+    sqrt_w = (sqrt_w * mask).astype(p.sqrt_w.dtype)
+    return dataclasses.replace(
+        p,
+        image=image,
+        depth=depth,
+        targets=targets,
+        sqrt_w=sqrt_w,
+        d=np.asarray(depth, np.float64),
+    )

@@ -1,0 +1,104 @@
+"""Fits on informative tiles (`jaxdof/_fit/tiles.py`): the mosaic's interiors are exactly the
+whole frame's render, the choice, the fit on tiles, and the option's checks."""
+
+import numpy as np
+import pytest
+
+import jaxdof
+from jaxdof._fit import tiles as T
+from jaxdof._fit.prepare import prepare_problem
+
+
+F, PITCH = 0.05, 4e-5
+TRUTH = jaxdof.ThinLens(F, 2.0, 2.0, PITCH)
+S = 128
+
+
+def scene(size=S, seed=0):
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(0.2, 0.8, size=(size, size))
+    image = 0.5 * image + 0.125 * sum(np.roll(image, k, a) for k in (1, -1) for a in (0, 1))
+    yy, xx = np.mgrid[0:size, 0:size]
+    depth = 1.2 + 2.0 * yy / (size - 1) + 0.3 * np.sin(xx / 9.0)
+    return image, depth, rng
+
+
+def test_mosaic_interiors_are_the_whole_frame_render():
+    """Every interior pixel of the mosaic renders exactly as in the whole frame: light from a
+    neighbour in the mosaic reaches only its halo (the window's reach), which has weight 0."""
+    image, depth, _ = scene()
+    window = 4.0
+    photo = np.asarray(jaxdof.render(image, depth, TRUTH, max_radius=window))
+    model = jaxdof.DefocusModel()
+    p = prepare_problem(image, depth, photo, TRUTH, None, model, ("f_number",), (), False)
+    halo = model.border_band(window)
+    tiles = T.Tiles(((4, 4), (4, 68), (60, 36), (92, 92)), 32, halo, (S, S))
+    q = T.tiled_problem(p, tiles)
+    mosaic = np.asarray(jaxdof.render(q.image, q.depth, TRUTH, max_radius=window))
+    crop = 32 + 2 * halo
+    inside = q.sqrt_w[0] > 0
+    assert inside.sum() == 4 * 32 * 32
+    for i, (r, c) in enumerate(tiles.corners):
+        rr, cc = divmod(i, tiles.cols)
+        got = mosaic[
+            rr * crop + halo : rr * crop + halo + 32, cc * crop + halo : cc * crop + halo + 32
+        ]
+        np.testing.assert_allclose(got, photo[r : r + 32, c : c + 32], rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(
+            q.targets[
+                0,
+                rr * crop + halo : rr * crop + halo + 32,
+                cc * crop + halo : cc * crop + halo + 32,
+            ],
+            photo[r : r + 32, c : c + 32],
+        )
+
+
+def test_choice_follows_information_and_avoids_depth_edges():
+    """Pixels of weight 0 (the left half: saturated, say) carry no information about the lens and
+    a depth step is an edge the soft model cannot explain: the chosen tiles avoid both."""
+    image, depth, _ = scene()
+    depth[96:, :] = 6.0  # a depth step at row 96
+    weight = np.ones((S, S))
+    weight[:, : S // 2] = 0
+    photo = np.asarray(jaxdof.render(image, depth, TRUTH, max_radius=4.0))
+    model = jaxdof.DefocusModel()
+    free = ("f_number", "focus_distance")
+    p = prepare_problem(image, depth, photo, TRUTH, weight, model, free, (), False)
+    rows = np.asarray(p.b)[None]
+    # Candidates: rows 4, 36, 68 x columns 4, 36, 68 (32 px, halo 4); of these (4, 68) and
+    # (36, 68) lie wholly in the weighted half and clear of the step.
+    chosen = T.choose_tiles(p, model, rows, 4.0, 2 * 32 * 32)
+    assert chosen is not None and len(chosen.corners) == 2
+    for r, c in chosen.corners:
+        assert c >= S // 2  # where the weights are
+        assert r + 32 + chosen.halo <= 96  # clear of the depth step
+
+
+def test_fit_on_tiles_recovers_the_lens():
+    image, depth, rng = scene()
+    photo = np.asarray(jaxdof.render(image, depth, TRUTH)) + 0.003 * rng.standard_normal((S, S))
+    init = jaxdof.ThinLens(F, 3.0, 1.6, PITCH)
+    res = jaxdof.fit_lens(image, depth, photo, init, tiles=4 * 32 * 32)
+    assert res.status in (jaxdof.RESULTS.successful, jaxdof.RESULTS.inconsistent), res.message
+    # Tiles of at least 32 px and twice the final window's reach (refitted with a larger window
+    # when the first one turns out too small), within the budget, inside the frame.
+    boxes = np.array(res.tiles)
+    assert len(boxes) >= 1 and int(res.pixels_used) == int(np.sum(boxes[:, 2] * boxes[:, 3]))
+    assert int(res.pixels_used) <= 4 * 32 * 32 and np.all(boxes[:, 2] >= 2 * res.max_radius)
+    assert np.all(boxes[:, :2] >= res.max_radius) and np.all(boxes[:, :2] + boxes[:, 2:] <= S)
+    assert f"fitted on {len(boxes)} tiles" in res.message
+    assert res.to_dict()["tiles"] == boxes.tolist()
+    for name in ("f_number", "focus_distance"):
+        err = abs(float(getattr(res.lens, name)) - float(getattr(TRUTH, name)))
+        assert err <= 3 * float(res.stderr[name]), (name, err, float(res.stderr[name]))
+
+
+def test_tiles_option():
+    assert T.use_tiles("auto", (100, 100)) is None  # small photos: the whole frame
+    assert T.use_tiles("auto", (2000, 1000)) == T.BUDGET
+    assert T.use_tiles(None, (5000, 5000)) is None and T.use_tiles(False, (5000, 5000)) is None
+    assert T.use_tiles(5000, (10, 10)) == 5000
+    for bad in ("yes", 0, -3, 1.5, True):
+        with pytest.raises(ValueError, match="tiles must be"):
+            T.use_tiles(bad, (10, 10))
