@@ -1,12 +1,17 @@
 """The lens fits of `raytraced.py`: forward-model treatments, the fit plan, and the fits (cached).
 
-Every fit is cached in `fits/.cache/raytraced/fit_*.json`, so a report re-run fits nothing new.
+Every fit is cached in `fits/.cache/raytraced/fit_*.json`, so a report re-run fits nothing new;
+the default-call study's fits (`run_default`) under `default/<fingerprint>_<precision>/`.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+import pathlib
+import re
 import time
+import traceback
 
 import jax
 
@@ -15,12 +20,15 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import cached_json  # noqa: E402
+from _common import FITS, cached_json  # noqa: E402
 from _raytraced_scenes import (  # noqa: E402
     CACHE,
     CONFIGS,
     F_PX,
+    LANDSCAPE_INIT_FOCUS,
     SCENES,
+    default_inputs,
+    default_lenses,
     load_scene,
     load_scene_fine,
     true_lens,
@@ -277,4 +285,174 @@ def run_fits(only=None):
         out[(n, a, d, t)] = fit_cached(
             n, a, d, edges=e, prefilter=p, footprint=fp, method=meth, scale=sc
         )
+    return out
+
+
+# ----------------------------------------------------------------------------- the default call
+# `raytraced_default.py`: `fit_lens(image, depth, photo, init)` with every default, on every scene
+# and lens of `DEFAULT_SCENES`, each fit cached under a fingerprint of the library's source.
+
+FOCUS_TOL, K_TOL = 0.02, 0.05  # the goal: focus distance within 2 %, blur scale K within 5 %
+SIGMAS = 3.0  # a miss more than this many reported standard errors off, with success, is silent
+
+
+def default_init(a, d):
+    """The default-call study's start: f-number 1.5x the truth's and focus 20 % short
+    (`LANDSCAPE_INIT_FOCUS` for a lens focused at infinity); f and pixel pitch the truth's."""
+    lens = true_lens(a, d)
+    focus = LANDSCAPE_INIT_FOCUS if math.isinf(d) else 0.8 * d
+    return jaxdof.ThinLens(lens.focal_length, lens.f_number * 1.5, focus, lens.pixel_pitch)
+
+
+def library_dir() -> pathlib.Path:
+    """The folder of the `jaxdof` package imported (this checkout's, or a copy's)."""
+    return pathlib.Path(jaxdof.__file__).resolve().parent
+
+
+def fingerprint() -> str:
+    """12 hex digits of the imported library's source and this study's scene and fit code: the
+    default fits are cached per fingerprint, so a re-run with the same code fits nothing again."""
+    h = hashlib.sha256()
+    lib = library_dir()
+    named = [(f.relative_to(lib.parent), f) for f in sorted(lib.rglob("*.py"))]
+    named += [(f, FITS / f) for f in ("_raytraced_scenes.py", "_raytraced_fits.py")]
+    for name, f in named:
+        h.update(str(name).encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def _first(x) -> float:
+    return float(np.asarray(x, np.float64).reshape(-1)[0])
+
+
+def _status(res) -> tuple[str, dict | None]:
+    """The status's name and `res.to_dict()` (None if it fails)."""
+    try:
+        out = res.to_dict()
+        return str(out["status"]), out
+    except Exception as err:  # a result the report cannot read is itself a finding
+        return f"unreadable ({type(err).__name__})", None
+
+
+def _log_stderr(res, lens, x_u: float) -> float:
+    """Relative standard error of a blur measure `X(N, u)` with `d ln X / d ln N = -1` and
+    `d ln X / du = x_u` (u = 1 / d_f): from the reported `stderr` of the f-number and of the
+    focus power, with their correlation from `covariance` (a correlation is unchanged by any
+    inflation of the standard errors); their worst case (|a| + |b|) where it is not finite."""
+    n = float(lens.f_number)
+    a = _first(res.stderr["f_number"]) / n
+    b = x_u * _first(res.focus_power_stderr)
+    names, cov = list(res.names), np.asarray(res.covariance, np.float64)
+    rho = np.nan
+    if "f_number" in names and "focus_distance" in names:
+        i, j = names.index("f_number"), names.index("focus_distance")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = -cov[i, j] / np.sqrt(cov[i, i] * cov[j, j])  # u falls as d_f grows
+    if not np.isfinite(rho):
+        return abs(a) + abs(b)
+    # d ln X = -dN / N + x_u du
+    return math.sqrt(max(a * a + b * b - 2 * rho * a * b, 0.0))
+
+
+def default_record(res, a, d, z) -> dict:
+    """A fit of the default study against the truth: status, errors, standard errors, verdict.
+
+    Focus is compared in the focus power `u = 1 / d_f` (finite through infinity): `focus_err` is
+    `d_f / d_f,true - 1`, or for a lens focused at infinity `u / u_near` (u_near = 1 / nearest
+    depth: the share of the largest circle the focus error moves every circle by). Blur is `K`,
+    or for a lens at infinity (K = 0 there) `S = K d_f = f^2 / (2 N p (1 - f u))`, the circle per
+    diopter (`A f_px` for the ray tracer). `focus_z` and `k_z`: |error| / reported stderr.
+    """
+    lens = res.lens
+    f, n, p = (float(getattr(lens, k)) for k in ("focal_length", "f_number", "pixel_pitch"))
+    u = _first(res.focus_power)
+    at_inf = math.isinf(d)
+    u_true = 0.0 if at_inf else 1.0 / d
+    u_near = 1.0 / float(np.min(z))
+    if at_inf:
+        blur, blur_true, x_u = f * f / (2 * n * p * (1 - f * u)), a * F_PX, f / (1 - f * u)
+        focus_err = u / u_near
+    else:
+        blur, blur_true = float(lens.blur_scale), a * F_PX / d
+        x_u = 1 / (u * (1 - f * u)) if u > 0 else np.inf
+        focus_err = float(lens.focus_distance) / d - 1
+    k_err = blur / blur_true - 1
+    se_u = _first(res.focus_power_stderr)
+    se_k = blur * _log_stderr(res, lens, x_u)
+    status, as_dict = _status(res)
+    within = abs(focus_err) < FOCUS_TOL and abs(k_err) < K_TOL
+    focus_z = abs(u - u_true) / se_u if se_u > 0 else np.inf
+    k_z = abs(blur - blur_true) / se_k if se_k > 0 else np.inf
+    success = bool(res.success)
+    return dict(
+        success=success,
+        status=status,
+        message=res.message,
+        focus_distance=float(lens.focus_distance),
+        focus_power=u,
+        focus_err=focus_err,
+        k=blur,
+        k_true=blur_true,
+        k_err=k_err,
+        focus_power_se=se_u,
+        k_se=se_k,
+        focus_z=focus_z,
+        k_z=k_z,
+        within=within,
+        silent=success and not within and max(focus_z, k_z) > SIGMAS,
+        pixels_used=int(res.pixels_used),
+        border=int(res.border),
+        result=as_dict,
+    )
+
+
+def no_paths(text: str) -> str:
+    """`text` without this machine's folders: paths from the package (or the checkout) down."""
+    text = re.sub(r"[^\s\"']*(site|dist)-packages/", "", text)
+    for root in {str(library_dir().parent), str(FITS.parent)}:
+        text = text.replace(root + "/", "")
+    return text
+
+
+def default_fit(scene, a, d, x64: bool) -> dict:
+    """`fit_lens(image, depth, photo, init)` with every default on one scene and lens; an
+    exception is caught and recorded (it is a finding, not a crash of the study)."""
+    image, z, target = default_inputs(scene, a, d)
+    dtype = np.float64 if x64 else np.float32
+    image, z, target = (np.asarray(x, dtype) for x in (image, z, target))
+    t0 = time.perf_counter()
+    try:
+        res = fit_lens(image, z, target, default_init(a, d))
+        jax.block_until_ready(res.lenses.focus_distance)
+    except Exception as err:
+        head = (str(err).splitlines() or [""])[0][:300]
+        return dict(
+            scene=scene,
+            a=a,
+            d=d,
+            seconds=time.perf_counter() - t0,
+            exception=no_paths(f"{type(err).__name__}: {head}"),
+            traceback=[no_paths(line) for line in traceback.format_exc().splitlines()][-25:],
+        )
+    seconds = time.perf_counter() - t0
+    return dict(scene=scene, a=a, d=d, seconds=seconds, **default_record(res, a, d, z))
+
+
+def run_default(scenes, x64: bool, fp: str) -> list[dict]:
+    """Every default fit of `scenes` (cached per fingerprint `fp` and precision)."""
+    folder = CACHE / "default" / f"{fp}_{'f64' if x64 else 'f32'}"
+    out = []
+    for scene in scenes:
+        for a, d in default_lenses(scene):
+            rec, computed = cached_json(
+                folder / f"{scene}_A{a}_df{d}.json",
+                lambda scene=scene, a=a, d=d: default_fit(scene, a, d, x64),
+            )
+            if computed:
+                what = (
+                    rec.get("exception")
+                    or f"{rec['status']}, focus {rec['focus_err']:+.2%}, K {rec['k_err']:+.2%}"
+                )
+                print(f"  {scene} A={a} d_f={d}: {what} ({rec['seconds']:.0f} s)", flush=True)
+            out.append(rec)
     return out

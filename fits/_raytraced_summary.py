@@ -302,3 +302,93 @@ def information_note(res: Psnr, fine_med, fc: FitCounts) -> str:
         )
         + ". Occlusion edges still need a treatment (the edge weight or the occlusion-aware model)."
     )
+
+
+# ----------------------------------------------------------------------------- the default call
+
+
+def default_counts(records) -> dict:
+    """Counts of the default study's verdicts over `records` (see `_raytraced_report.verdict`)."""
+    fits = [r for r in records if "exception" not in r]
+    return dict(
+        lenses=len(records),
+        within=sum(r["within"] for r in fits),
+        within_success=sum(r["within"] and r["success"] for r in fits),
+        refused=sum(r["within"] and not r["success"] for r in fits),
+        flagged=sum(not r["within"] and not r["success"] for r in fits),
+        covered=sum(not r["within"] and r["success"] and not r["silent"] for r in fits),
+        silent=sum(r["silent"] for r in fits),
+        exceptions=len(records) - len(fits),
+        focus=med([abs(r["focus_err"]) for r in fits]),
+        k=med([abs(r["k_err"]) for r in fits]),
+    )
+
+
+EXPLAINED = ("slant", "outside")  # no depth edge in the frame, a disc aperture, no falloff
+MIS_MODELLED = ("vignette", "pentagon")  # a falloff and an aperture shape the model lacks
+
+
+def goal_lines(records, halves: dict) -> list[str]:
+    """This run against issue 20's goals for the default call."""
+
+    def count(key, names):
+        return default_counts([r for r in records if r["scene"] in names])[key]
+
+    def per_half(key) -> str:
+        return " / ".join(f"{count(key, names)} ({half})" for half, names in halves.items())
+
+    explained = [r for r in records if r["scene"] in EXPLAINED and "exception" not in r]
+    wrong = [r for r in records if r["scene"] in MIS_MODELLED and "exception" not in r]
+    return [
+        "Against issue 20's goals (this run):",
+        "",
+        f"- exceptions escaping `fit_lens`: {per_half('exceptions')};",
+        f"- silent misses: {per_half('silent')};",
+        f"- lenses of the scenes the model explains ({', '.join(EXPLAINED)}: no depth edge in the "
+        "frame, a disc aperture, no falloff) within (2 %, 5 %) with success=True: "
+        f"{sum(r['within'] and r['success'] for r in explained)} of {len(explained)} (within at "
+        f"all: {sum(r['within'] for r in explained)});",
+        f"- mis-modelled targets ({', '.join(MIS_MODELLED)}) with success=False: "
+        f"{sum(not r['success'] for r in wrong)} of {len(wrong)}, of which outside (2 %, 5 %): "
+        f"{sum(not r['success'] and not r['within'] for r in wrong)}; with success=True and "
+        f"outside: {sum(r['success'] and not r['within'] for r in wrong)}.",
+        "",
+    ]
+
+
+def default_summary_lines(records, halves: dict) -> list[str]:
+    """The default study's summary: a row per half, a row per scene, then every silent miss and
+    exception by name. `halves`: {half name: scene names}."""
+    cols = (
+        " | lenses | within (2 %, 5 %) | within, success | within, refused | outside, flagged | "
+        "outside, covered | silent misses | exceptions | median abs focus err | median abs K "
+        "err |"
+    )
+    rule = "|---|---|---|---|---|---|---|---|---|---|---|---|"
+
+    def row(names) -> str:
+        c = default_counts([r for r in records if r["scene"] in names])
+        return (
+            f" | {c['lenses']} | {c['within']} | {c['within_success']} | {c['refused']} | "
+            f"{c['flagged']} | {c['covered']} | {c['silent']} | {c['exceptions']} | "
+            f"{c['focus']:.2%} | {c['k']:.2%} |"
+        )
+
+    out = goal_lines(records, halves)
+    out += ["| half | scenes" + cols, rule]
+    out += [f"| {h} | {', '.join(s)}" + row(s) for h, s in halves.items() if s]
+    out += ["", "Per scene:", "", "| scene | half" + cols, rule]
+    out += [f"| {s} | {h}" + row((s,)) for h, names in halves.items() for s in names]
+    out.append("")
+    for r in records:
+        d = "inf" if np.isinf(float(r["d"])) else f"{float(r['d']):g}"
+        lens = f"{r['scene']} (A = {r['a']} m, d_f = {d} m)"
+        if "exception" in r:
+            out.append(f"- exception on {lens}: `{r['exception'][:200]}`")
+        elif r["silent"]:
+            out.append(
+                f"- silent miss on {lens}: focus {r['focus_err']:+.1%}, K {r['k_err']:+.1%}, "
+                f"{r['focus_z']:.1f} and {r['k_z']:.1f} reported standard errors off, "
+                "success=True"
+            )
+    return out + [""]

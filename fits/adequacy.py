@@ -50,7 +50,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import (  # noqa: E402
     command,
@@ -62,7 +61,7 @@ from _common import (  # noqa: E402
 )
 
 import jaxdof  # noqa: E402
-from jaxdof import ThinLens, fit_lens, render  # noqa: E402
+from jaxdof import fit_lens, render  # noqa: E402
 
 
 # isort: split
@@ -70,13 +69,13 @@ from jaxdof import ThinLens, fit_lens, render  # noqa: E402
 from recover import (  # noqa: E402
     FREE,
     N_TRUE,
-    PITCH,
     SIGMAS,
     WINDOW,
     F,
     H,
     W,
     blur_scale,
+    crb,
     random_init,
     scenes,
     true_lens,
@@ -96,23 +95,6 @@ PENTAGON_AREA = 2.5 * np.sin(np.deg2rad(72.0)) / np.pi
 
 
 # --------------------------------------------------------------- the check on a fit
-
-
-@jax.jit
-def _jacobian_natural(image, depth, theta):
-    """d render / d (N, d_f) at `theta` (the Cramér-Rao bound's Jacobian, as in recover.py)."""
-
-    def model(theta):
-        lens = ThinLens(F, theta[0], theta[1], PITCH)
-        return render(image, depth, lens, max_radius=WINDOW).ravel()
-
-    return jax.jacfwd(model)(theta)
-
-
-def border_mask(band):
-    mask = np.zeros((H, W))
-    mask[band : H - band, band : W - band] = 1
-    return mask
 
 
 def one(image, depth, target, lens, rng, *, truth_n=N_TRUE, **kw) -> dict:
@@ -161,14 +143,6 @@ def one(image, depth, target, lens, rng, *, truth_n=N_TRUE, **kw) -> dict:
     )
 
 
-def crb(image, depth, lens, sigma, band):
-    """Cramér-Rao standard deviations of (N, d_f) with the fit's mask."""
-    theta = jnp.array([float(lens.f_number), float(lens.focus_distance)])
-    jac = np.asarray(_jacobian_natural(jnp.asarray(image), jnp.asarray(depth), theta))
-    jac = jac * border_mask(band).reshape(-1, 1)
-    return np.sqrt(np.diag(sigma**2 * np.linalg.inv(jac.T @ jac)))
-
-
 # --------------------------------------------------------------- the two sections
 
 
@@ -194,7 +168,7 @@ def false_alarms(trials, border) -> list[dict]:
             est = np.array([f["est"][:2] for f in fits])
             truth = np.array([N_TRUE, float(lens.focus_distance)])
             band = WINDOW_BAND if border == "auto" else border
-            bound = crb(image, depth, lens, sigma, band) if sigma > 0 else np.zeros(2)
+            bound = crb(image, depth, lens, sigma, band)[0] if sigma > 0 else np.zeros(2)
             rmse = np.sqrt(np.mean((est - truth) ** 2, axis=0))
             rows.append(
                 dict(

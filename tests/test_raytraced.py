@@ -223,6 +223,14 @@ def covered(res, truth):
     return max(z) <= 3, z
 
 
+def assert_recovered(res, truth):
+    """Converged (`converged`), within the goal (`within_goal`) and covered (`covered`)."""
+    assert converged(res), res.message
+    ok, df_err, k_err = within_goal(res, truth)
+    assert ok, (df_err, k_err)
+    assert covered(res, truth)[0], covered(res, truth)
+
+
 def within_goal(res, truth):
     """The issue's goal on ray-traced scenes: focus distance within 2%, blur scale within 5%."""
     fitted = res.lens
@@ -234,10 +242,7 @@ def within_goal(res, truth):
 def test_fit_recovers_raytraced_lens_without_depth_edges():
     # One slanted plane, circles 0.2-3.4 px (fits/raytraced.py: d_f +0.7%, K -0.1% on this crop).
     res, truth = fit_fixture("slant", edges=False)
-    assert converged(res), res.message
-    ok, df_err, k_err = within_goal(res, truth)
-    assert ok, (df_err, k_err)
-    assert covered(res, truth)[0], covered(res, truth)
+    assert_recovered(res, truth)
 
 
 def test_a_finer_input_recovers_the_smallest_blur_scale():
@@ -262,10 +267,7 @@ def test_a_finer_input_recovers_the_smallest_blur_scale():
             footprint=True,
             downsample=s,
         )
-    assert converged(fits[2]), fits[2].message
-    ok, df_err, k_err = within_goal(fits[2], truth)
-    assert ok, (df_err, k_err)
-    assert covered(fits[2], truth)[0], covered(fits[2], truth)
+    assert_recovered(fits[2], truth)
     ok1, df1, k1 = within_goal(fits[1], truth)
     assert not ok1 and max(df1, k1) > 0.1, (df1, k1)  # the 1x input: far outside the goal
 
@@ -276,10 +278,7 @@ def test_edge_weight_removes_occlusion_bias():
     # with it the fit meets the goal (d_f +0.6%, K -4.7%: K's bias is the pixel footprint, see
     # fits/results/raytraced.md). The second fit reuses the first one's compilation.
     res, truth = fit_fixture("occluders", edges=True)
-    assert converged(res), res.message
-    ok, df_err, k_err = within_goal(res, truth)
-    assert ok, (df_err, k_err)
-    assert covered(res, truth)[0], covered(res, truth)
+    assert_recovered(res, truth)
     plain, _ = fit_fixture("occluders", edges=False)
     _, df_plain, _ = within_goal(plain, truth)
     assert df_plain > 0.05  # the bias the weight removes, well beyond the 2% goal
