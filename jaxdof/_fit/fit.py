@@ -200,6 +200,30 @@ def _search_on_every_pixel(run: _Run, window: float, y0s):
     return np.where(np.isfinite(info["ys"]), info["ys"], y0s).astype(np.asarray(y0s).dtype)
 
 
+def _shrink_window(run: _Run, window: float, r_final: float, info):
+    """A refit with the window the solution's circles need, when that is smaller than the one
+    the starts needed (`None` otherwise, or with a given `max_radius`).
+
+    The automatic window and its border band follow the largest circle of any start (starts
+    spread in diopters make large circles), so the band can leave out far more of the photo than
+    the fitted lens requires: on a ray-traced slanted plane with circles under 3 px, four starts
+    set a 10 px window and band, and the lowest-loss start there was 20 % off in K, while the
+    4 px window of the fitted circles keeps 37 % more pixels. Every start is solved again from
+    where it ended, so the larger set of pixels decides between them."""
+    if run.max_radius is not None:
+        return None
+    p = run.problem
+    smaller = window_for(r_final, float(max(p.photo)))
+    if smaller >= window:
+        return None
+    ys = np.where(np.isfinite(info["ys"]), info["ys"], 0).astype(np.asarray(info["ys"]).dtype)
+    model, solution, info2, args, bands = run.solve(smaller, ys, p.args, 0, run.solver)
+    r2 = run.forward.max_circle(np.asarray(info2["natural"], np.float64), p.d)
+    if r2 > smaller:  # the refit's circles outgrow it: keep the first solve
+        return None
+    return model, solution, info2, args, bands, smaller, r2
+
+
 def _full_resolution(run: _Run, y0s, rows: np.ndarray, window: float):
     """The full-resolution multi-start solve, refitted (up to twice) with a larger window when
     the automatic one turns out too small for the solution's circles.
@@ -226,6 +250,9 @@ def _full_resolution(run: _Run, y0s, rows: np.ndarray, window: float):
         y0s = np.concatenate([info["ys"][best][None], info["ys"]], axis=0)
         model, solution, info, args, (band, wanted) = run.solve(window, y0s, p.args, 0, run.solver)
         r_final = run.forward.max_circle(np.asarray(info["natural"], np.float64), p.d)
+    shrunk = _shrink_window(run, window, r_final, info)
+    if shrunk is not None:
+        model, solution, info, args, (band, wanted), window, r_final = shrunk
     solved = _settle_at_infinity(run, window, (model, solution, info, args))
     if solved is not None:
         model, solution, info, args, note = solved
