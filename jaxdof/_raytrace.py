@@ -78,7 +78,8 @@ def lens_from_raytracer(
     **Arguments:**
 
     - `aperture_radius`: the camera's aperture radius `A` (scene units, read as metres).
-    - `focus_distance`: its focus distance `d_f`, a z-distance (metres).
+    - `focus_distance`: its focus distance `d_f`, a z-distance (metres); `inf` for a camera
+      focused at infinity (the sensor at `f`; blur scale `0`, circles `A f_px / d`).
     - `fov_x_deg`: its horizontal field of view (degrees) and `image_width` its width (pixels).
     - `focal_length`: the focal length `f` to give the equivalent lens (metres). Any `f < d_f`
       gives the same blur; it only sets how the blur scale splits into `f_number` and
@@ -114,7 +115,8 @@ def lens_from_raytracer(
     if int(image_width) != image_width or image_width < 1:
         raise ValueError(f"image_width must be a positive integer, got {image_width}")
     f_px = _focal_length_px(fov_x_deg, int(image_width))
-    s = focal_length * focus_distance / (focus_distance - focal_length)
+    # The sensor distance f d_f / (d_f - f) = f / (1 - f / d_f): f at focus at infinity.
+    s = focal_length / (1.0 - focal_length / focus_distance)
     return ThinLens(
         focal_length=focal_length,
         f_number=focal_length / (2.0 * aperture_radius),

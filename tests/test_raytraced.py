@@ -121,11 +121,13 @@ def test_ray_distance_to_z_rejects_bad_input():
 # ------------------------------------------------------------------------- the lens mapping
 
 
-@pytest.mark.parametrize("focal_length", [0.005, 0.05, 0.5])
-def test_lens_from_raytracer_matches_ray_tracer_coc(focal_length):
+@pytest.mark.parametrize(
+    "focal_length,d_f", [(0.005, 2.0), (0.05, 2.0), (0.5, 2.0), (0.05, np.inf)]
+)
+def test_lens_from_raytracer_matches_ray_tracer_coc(focal_length, d_f):
     # The ray tracer's circle: A f_px |1/d_f - 1/d|. Exact for any focal length (the derivation has
-    # no small-f approximation), so only float64 rounding is allowed.
-    a, d_f, fov, w = 0.04, 2.0, 40.0, 128
+    # no small-f approximation), so only float64 rounding is allowed; focus at infinity included.
+    a, fov, w = 0.04, 40.0, 128
     lens = lens_from_raytracer(a, d_f, fov_x_deg=fov, image_width=w, focal_length=focal_length)
     fp = f_px(fov, w)
     np.testing.assert_allclose(float(lens.blur_scale), a * fp / d_f, rtol=1e-13)
