@@ -34,7 +34,7 @@ from .prepare import (
 )
 from .residual import _Model
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
-from .solve import _default_tol, finish, fit_starts, restate, run_stage
+from .solve import default_solver, finish, fit_starts, restate, run_stage
 from .strategies import (
     _COARSE_TOL,
     _check_pyramid,
@@ -120,8 +120,7 @@ class _Run:
 def _solvers(solver, dtype, verbose):
     """The full-resolution and coarse-level solvers (the default, or the user's for both)."""
     if solver is None:
-        tol = _default_tol(dtype)
-        solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+        solver = default_solver(dtype)
         # A coarse level's minimum differs from the full-resolution one by the downsampling's
         # model error, so it is solved only to `_COARSE_TOL` (see `strategies.py`).
         coarse_solver = optx.LevenbergMarquardt(rtol=_COARSE_TOL, atol=_COARSE_TOL)
@@ -581,9 +580,12 @@ def fit_lens(
     - `free`: the fields to fit, among `"focal_length"`, `"f_number"`, `"focus_distance"`.
     - `shared`: the free fields that take one value across all targets (a focus bracket:
       `shared=("focal_length", "f_number")`, with `focus_distance` free per target).
-    - `solver`: any optimistix least-squares solver; default
-      `optx.LevenbergMarquardt(rtol=tol, atol=tol)` with `tol = 1e-8` (float64) or `1e-5`
-      (float32): steps in the log coordinates below that are at float32's rounding floor.
+    - `solver`: any optimistix least-squares solver; default optimistix's Levenberg-Marquardt,
+      `rtol = atol = tol` with `tol = 1e-8` (float64) or `1e-5` (float32: steps in the log
+      coordinates below that are at float32's rounding floor), which also stops once Bates &
+      Watts' relative offset is under `1e-3`: its next step would move the fit by less than
+      about a thousandth of a standard error (on a noisy photo Levenberg-Marquardt converges only
+      linearly; `jaxdof/_fit/lm.py`).
     - `max_steps`: solver step limit per start.
     - `weight`: optional per-pixel weight `>= 0` (an inverse variance, or a 0/1 mask), `(H, W)`,
       `(T, H, W)`, or the photo's/targets' shape.
