@@ -239,6 +239,78 @@ MAX_LAYERS = 32
 TABLE_LEVELS_PER_PIXEL = 1 / 8
 
 
+# --------------------------------------------------------------------------------------------
+# Memory (`jaxdof.internal.estimate_memory`, the CLI's `render --memory`)
+# --------------------------------------------------------------------------------------------
+
+#: What `jaxdof.render` needs on top of its inputs, by kind of method: bytes per input pixel of
+#: an RGB float32 frame (`"per_pixel"`), plus `"per_channel"` for every channel more or less than
+#: three (the ones channel of `normalize` included), `"footprint"` per pixel with the footprint
+#: correction, and `"fixed"` bytes once (compiled code, XLA's scratch). A banded render (each
+#: band compiled, as `render` runs them) needs `"band_scale"` times the per-pixel bytes (by
+#: kind; `"other"` for the kinds not measured) for the pixels of one band with its halo,
+#: `"band_fixed"` bytes once, and `"band_frame"` per pixel of the whole frame (the output); a
+#: method that prepares on the radius map (`Auto`, `Layered`) keeps that map (4 bytes per pixel)
+#: besides. Read by `jaxdof/_render.py` (`estimate_memory`) and through it by the CLI's
+#: `render --memory`.
+#:
+#: Measured for issue 22 (2026-12-02): peak resident memory (`ru_maxrss`) of one `jaxdof.render`
+#: call in a fresh process, minus the process's before the call (JAX imported, inputs made), on
+#: a 2-core AMD EPYC shared with other jobs, jax 0.10.2, float32, a random RGB image, depth 1-10 m,
+#: largest circle `R`. Whole frames with `jaxdof.retain_freed_memory()` (as the CLI renders a
+#: frame that fits); the per-pixel figures are the slopes between 1000 x 1500 and 2000 x 3000
+#: (MB at 1.5 / 6 MP):
+#:
+#:     soft R = 8      300 / 855  -> 123       hard R = 8         259 / 618  -> 80
+#:     soft R = 24         - / 907  (132)      supersample R = 8  343 / 887  -> 121
+#:     soft R = 48     649 / 1996 -> 299       aperture R = 8     441 / 1280 -> 186
+#:     soft R = 96     603 /  -   (at most)    layered R = 8      631 / 1817 -> 264
+#:     Soft(blades=6)  780 /  -   (443)        auto R = 8         345 / 833  -> 108
+#:
+#: intercepts 100-200 MB (`fixed`). At 6 MP, soft R = 8: one channel 718 MB (11 bytes per pixel
+#: per channel), `normalize` 1181 MB (+54 per pixel: more than a channel), `footprint` 2941 MB
+#: (+348 per pixel). Bands (without the allocator setting, as the CLI renders bands), 2000 x 3000,
+#: R = 8, bands of 250 / 1000 rows: soft 414 / 546 MB (59 per band pixel, 0.48 of the whole
+#: frame's), layered 598 / 1058 (204, 0.77), aperture 408 / 757 (155, 0.83); soft at 6000 x 4000,
+#: R = 15, `jaxdof render` sampled at each stage: bands of 1701 rows 1208 MB over the process
+#: when the render started, so with the 6 MP intercept (366 MB) `band_fixed` about 290 MB and
+#: `band_frame` 13 per frame pixel (the RGB output's 12); bands of 1334 rows 1346 MB, which with
+#: those leaves 92 per band pixel (0.68 of the whole frame's): soft's `band_scale` is 0.75. `soft` below `SPANS_MIN_RADIUS` is the
+#: dense gather, `soft_spans` from there on (R = 48 and 96 measured); `auto` is the largest of its
+#: choices (soft, layered); `other` (a method of your own) the largest of the table.
+RENDER_MEMORY = {
+    "per_pixel": {
+        "soft": 135.0,
+        "soft_spans": 300.0,
+        "soft_polygon": 450.0,
+        "hard": 85.0,
+        "supersample": 125.0,
+        "aperture": 190.0,
+        "layered": 265.0,
+        "auto": 300.0,
+        "other": 450.0,
+    },
+    "per_channel": 11.0,
+    "normalize": 54.0,
+    "footprint": 350.0,
+    "fixed": 200 * 2**20,
+    "band_scale": {"soft": 0.75, "layered": 0.8, "aperture": 0.85, "other": 1.0},
+    "band_fixed": 300 * 2**20,
+    "band_frame": 16.0,
+}
+
+#: What the `jaxdof` command holds while it renders, besides the render (`jaxdof/_cli/commands.py`,
+#: `band_rows`): `"process"` bytes (Python, JAX and jaxdof imported, and what reading the files
+#: leaves) and `"per_pixel"` bytes per input pixel (the image and depth as read: 16 for RGB
+#: float32). Reading and writing the files peak on their own, before and after the render
+#: (`_io`'s float64 conversions: not counted here).
+#:
+#: Measured for issue 22 (2026-12-02), `jaxdof render` of a 6000 x 4000 RGB float32 `.npy` frame
+#: and its depth, resident memory sampled at each stage: 173 MB after the imports, 753 MB when
+#: the render starts (24 bytes per pixel over the imports).
+CLI_MEMORY = {"process": 200 * 2**20, "per_pixel": 24.0}
+
+
 _NAMES = (
     "SPANS_MIN_RADIUS",
     "JITTER_SPANS_MIN_RADIUS",
@@ -253,6 +325,8 @@ _NAMES = (
     "LAYER_COST_IN_TAPS",
     "MAX_LAYERS",
     "TABLE_LEVELS_PER_PIXEL",
+    "RENDER_MEMORY",
+    "CLI_MEMORY",
 )
 
 

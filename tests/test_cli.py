@@ -25,7 +25,6 @@ from jaxdof import _io
 from jaxdof._cli import commands, main, report
 from jaxdof._cli.demo import demo_scene
 from jaxdof._cli.parse import build_parser
-from jaxdof._cli.report import Progress
 
 
 H, W = 24, 32
@@ -233,77 +232,36 @@ def test_fit_json_and_plot(fit_run):
     assert obj["sigma"] >= 0 and obj["condition"] >= 1 and obj["max_radius"] > 0
 
 
-_STEP = re.compile(r"^\s*solve (\d+) start (\d+)\s+step\s+(\d+)\s+loss (\S+)$")
+# A plain progress line (stderr is not a terminal): solve, start i/n, step, loss, lens, elapsed.
+_STEP = re.compile(
+    r"^\s*solve (\d+) start (\d+)/(\d+)\s+step\s+(\d+)\s+loss (\S+)"
+    r"\s+N (\S+)\s+d_f (\S+) m\s+\((\S+) s\)$"
+)
 
 
 def test_fit_progress_prints_each_step_once(fit_run):
     """Each accepted step of each start once on stderr (optimistix's callback fires on every
-    trial step, and again for every start already done while the others run)."""
+    trial step, and again for every start already done while the others run), with the lens it
+    reached (the free fields) and the time; the best line of the last solve is the fit's answer."""
     res, _ = fit_run
     assert res.returncode == 0, res.stderr
     lines = [line for line in res.stderr.splitlines() if "step" in line]
     assert lines, res.stderr
     assert len(lines) == len(set(lines)), "a step line is repeated"
-    steps = {}
+    steps, last = {}, {}
     for line in lines:
         match = _STEP.match(line)
         assert match, line
-        solve, start, step, _ = match.groups()
+        solve, start, starts, step, loss, n, d_f, seconds = match.groups()
+        assert 1 <= int(start) <= int(starts)
         steps.setdefault((solve, start), []).append(int(step))
+        last[int(solve)] = last.get(int(solve), []) + [(float(loss), float(n), float(d_f))]
+        assert float(seconds) >= 0
     assert all(s == sorted(set(s)) for s in steps.values()), steps
-
-
-def _toy_solve(y0s, verbose):
-    """Rosenbrock from each of `y0s` at once (vmapped, as `fit_lens` solves its starts), with a
-    constant residual `1000 i` that makes start `i`'s loss about `0.5e6 i^2`: the loss says which
-    start a progress line is about. The steps do not see it (its Jacobian row is zero).
-    Returns each start's number of solver steps."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-    import optimistix as optx
-
-    def fn(y, c):
-        return jnp.stack([10 * (y[1] - y[0] ** 2), 1 - y[0], c])
-
-    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, verbose=verbose)
-
-    @eqx.filter_jit
-    def solve(y0s, cs):
-        def one(y0, c):
-            return optx.least_squares(fn, solver, y0, c, throw=False, max_steps=100)
-
-        return eqx.filter_vmap(one)(y0s, cs).stats["num_steps"]
-
-    cs = 1000.0 * jnp.arange(len(y0s), dtype=jnp.float64)
-    steps = solve(jnp.asarray(y0s, dtype=jnp.float64), cs)
-    jax.effects_barrier()  # every callback has run
-    return np.asarray(steps)
-
-
-def test_progress_attributes_each_step_to_its_start(capsys):
-    """`Progress` on a vmapped solve whose starts finish after different numbers of steps: every
-    line is about the start it names (its loss says so), once per accepted step, steps rising,
-    and a start done early reports its final step; a second solve is `solve 2`."""
-    y0s = [[-1.2, 1.0], [0.5, 0.5], [3.0, -2.0]]
-    progress = Progress()
-    steps = _toy_solve(y0s, progress)
-    assert len(set(steps.tolist())) == len(y0s)  # the case that repeated lines: starts done early
-    _toy_solve(y0s, progress)  # the same callable again: the next solve
-    lines = capsys.readouterr().err.splitlines()
-    assert len(lines) == len(set(lines)), "a step line is repeated"
-    seen = {}
-    for line in lines:
-        match = _STEP.match(line)
-        assert match, line
-        solve, start, step, loss = match.groups()
-        assert round(np.sqrt(2 * float(loss)) / 1000) == int(start), line
-        seen.setdefault((int(solve), int(start)), []).append(int(step))
-    assert sorted(seen) == [(k, i) for k in (1, 2) for i in range(len(y0s))]
-    for (_, i), s in seen.items():
-        assert s == sorted(set(s)), s
-        if steps[i] < steps.max():  # done early: its final state is reported once
-            assert s[-1] == steps[i], (i, s, steps)
+    obj = json.loads(res.stdout)
+    _, n, d_f = min(last[max(last)])  # the lowest loss of the last solve
+    assert n == pytest.approx(obj["f_number"], rel=1e-3)  # 4 digits printed
+    assert d_f == pytest.approx(obj["focus_distance"], rel=1e-3)
 
 
 def test_fit_downsample_option(tmp_path):
@@ -459,6 +417,70 @@ def test_render_focus_at_infinity(files, tmp_path):
     _unchanged(d, hashes)
 
 
+def test_render_in_bands(files, tmp_path, capsys):
+    """`render --memory` (in-process): a frame whose render would need more than the budget is
+    rendered in bands, the highest that fit, with the whole frame's pixels; stdout says so, and
+    stderr (not a terminal) has a plain line per band, none with `--quiet`. The estimate's
+    constants are made tiny here, so that a 24 x 32 frame needs bands: a budget of what bands of
+    8 rows need gives 3 bands of 8 rows."""
+    d, hashes, linear, depth = files
+    import jaxdof
+    from jaxdof.internal import estimate_memory, tuning
+
+    lens = _lens(jaxdof)
+    radius = float(np.max(np.asarray(jaxdof.coc_radius(depth, lens))))
+    table = {**tuning.RENDER_MEMORY, "fixed": 0, "band_fixed": 0}
+    argv = ["render", str(d / "sharp.png"), str(d / "depth.npy"), *LENS]
+    with tuning.override(CLI_MEMORY={"process": 0, "per_pixel": 0.0}, RENDER_MEMORY=table):
+        budget = estimate_memory((H, W, 3), radius, band_rows=8)
+        assert main([*argv, "-o", str(tmp_path / "bands.npy"), "--memory", f"{budget}B"]) == 0
+        out = capsys.readouterr()
+        assert "3 bands of 8 rows" in out.out
+        assert [line.split()[:2] for line in out.err.splitlines()] == [
+            ["band", f"{k}/3"] for k in (1, 2, 3)
+        ]
+        quiet = ["-o", str(tmp_path / "quiet.npy"), "--memory", f"{budget}B", "--quiet"]
+        assert main([*argv, *quiet]) == 0
+        assert capsys.readouterr().err == ""
+    expect = np.asarray(jaxdof.render(linear, depth, lens))
+    np.testing.assert_allclose(np.load(tmp_path / "bands.npy"), expect, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(np.load(tmp_path / "quiet.npy"), np.load(tmp_path / "bands.npy"))
+    _unchanged(d, hashes)
+
+
+def test_out_of_memory_is_one_line(files, tmp_path, monkeypatch, capsys):
+    """XLA's `RESOURCE_EXHAUSTED` in `render` or `fit` (here raised by a stand-in): one line
+    naming the image's size and what to try, exit status 2; any other error still raises."""
+    d, hashes, _, _ = files
+    import jax
+
+    import jaxdof
+
+    def exhausted(*args, **kwargs):
+        raise jax.errors.JaxRuntimeError(
+            "RESOURCE_EXHAUSTED: Out of memory allocating 29665187504 bytes."
+        )
+
+    monkeypatch.chdir(d)
+    monkeypatch.setattr(jaxdof, "render", exhausted)
+    assert main([*R[:4], str(tmp_path / "o.npy"), *LENS]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert "out of memory (an allocation of 27.7GB) on a 24x32 image" in line
+    assert "smaller --memory" in line
+    monkeypatch.setattr(jaxdof, "fit_lens", exhausted)
+    assert main([*F, "--quiet"]) == 2
+    line = _one_line(capsys.readouterr().err)
+    assert line.startswith("jaxdof fit: error: out of memory") and "24x32" in line
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("not about memory")
+
+    monkeypatch.setattr(jaxdof, "render", broken)
+    with pytest.raises(RuntimeError, match="not about memory"):
+        main([*R[:4], str(tmp_path / "o.npy"), *LENS])
+    _unchanged(d, hashes)
+
+
 def test_demo(tmp_path):
     res = _run(["demo", "--out", "demo.png"], tmp_path)
     assert res.returncode == 0, res.stderr
@@ -516,6 +538,9 @@ BAD = [  # (argv, text the one line must contain)
     ),
     (["render", "sharp.png", "depth.npy", "--zbuffer", "-o", "o.png", *LENS], "--near and --far"),
     (["render", "sharp.png", "depth.npy", "-o", "sharp.png", *LENS], "sharp.png: is also an input"),
+    ([*R, *LENS, "--memory", "lots"], "argument --memory: bad memory size 'lots'"),
+    ([*R, *LENS, "--memory", "1MB"], "needs about"),
+    ([*R, *LENS, "--method", "occlusion", "--memory", "1MB"], "renders the whole frame at once"),
     (
         ["render", "sharp.png", "depth.npy", "-o", "o.bmp", *LENS],
         "o.bmp: unsupported output format",

@@ -1,7 +1,8 @@
 """The `jaxdof` command line: `demo`, `render`, `fit` and `info`, a thin layer over `_io`,
 `_exif` and the library.
 
-`parse` builds the parser, `commands` runs a command, `report` prints results and progress,
+`parse` builds the parser, `commands` runs a command, `report` prints results, `progress` shows
+what a command is doing while it works (a live line on a terminal, plain lines in a log),
 `plot` draws the figures, `demo` makes the demo's scene. Every problem with the user's files or
 options ends in one line on stderr that names the file or option and the problem, and exit
 status 2: an `InputError` (raised by `_io` and by the CLI's own checks), or the library's
@@ -32,9 +33,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # --help, --version, or a one-line usage error
         return int(exc.code or 0)
-    # the application's call (see `jaxdof.retain_freed_memory`): XLA's per-call scratch is then
-    # reused instead of faulted in anew, up to 2x on megapixel images
-    retain_freed_memory()
+    if args.command != "render":  # render decides by the frame's size (`commands._render`)
+        # the application's call (see `jaxdof.retain_freed_memory`): XLA's per-call scratch is
+        # then reused instead of faulted in anew, up to 2x on megapixel images
+        retain_freed_memory()
     try:
         return _COMMANDS[args.command](args)
     except InputError as err:

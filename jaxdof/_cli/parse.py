@@ -13,6 +13,7 @@ import re
 
 
 FIELDS = ("focal_length", "f_number", "focus_distance")
+DEFAULT_MEMORY = 3 * 2**30  # bytes: `render --memory`
 _UNITS = {"mm": 1e-3, "cm": 1e-2, "m": 1.0}
 _LENGTH = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*(mm|cm|m)?\s*$")
 
@@ -116,6 +117,23 @@ def parse_positive(text: str) -> float:
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"{text!r} must be positive and finite")
     return value
+
+
+_BYTES = re.compile(r"^\s*(\d+\.?\d*|\.\d+)\s*(?:([kmgt])i?b?|(b))?\s*$", re.IGNORECASE)
+
+
+def parse_memory(text: str) -> int:
+    """`render --memory`: `3GB`, `2.5G`, `800MB`, `800M`, `1.5GiB` (binary units: 1 GB = 2^30
+    bytes), `100B`, or a bare number of GB; positive. Returns bytes."""
+    match = _BYTES.match(text)
+    value = float(match.group(1)) if match else 0.0
+    if match is None or value <= 0:
+        raise argparse.ArgumentTypeError(
+            f"bad memory size {text!r}: give a positive size with a unit, e.g. 3GB or 800MB"
+        )
+    prefix, plain_bytes = match.group(2), match.group(3)
+    power = 0 if plain_bytes else "kmgt".index(prefix.lower()) + 1 if prefix else 3
+    return int(value * 1024**power)
 
 
 def parse_nonnegative(text: str) -> float:
@@ -264,6 +282,12 @@ examples:
       --focal-length 85mm --f-number 1.4 --focus 2.5m --sensor-width 23.5mm
   jaxdof render sharp.npy zbuf.npy --zbuffer --near 0.1m --far 100m -o out.npy \\
       --focal-length 35mm --f-number 2.8 --focus 4m
+  jaxdof render sharp24mp.tif depth.npy -o out.tif --memory 2GB \\
+      --focal-length 50mm --f-number 1.8 --focus 3m
+
+A frame whose render would need more than --memory is rendered in bands of rows, each with a
+halo of the largest circle's reach, which gives the same pixels; when even a band of one row
+cannot fit, the command says what it needs (exit status 2).
 """
 
 _EPILOG_FIT = """\
@@ -311,6 +335,7 @@ def _add_demo(sub) -> None:
         formatter_class=_FORMAT,
     )
     demo.add_argument("--out", default="demo.png", metavar="PNG", help="figure path (demo.png)")
+    demo.add_argument("--quiet", action="store_true", help="no progress on stderr")
 
 
 def _add_render(sub) -> None:
@@ -330,6 +355,15 @@ def _add_render(sub) -> None:
         metavar="OUT",
         help="output (.png, .tif, .jpg, .npy, .npz); integer formats keep the input's bit depth",
     )
+    render.add_argument(
+        "--memory",
+        type=parse_memory,
+        default=DEFAULT_MEMORY,
+        metavar="SIZE",
+        help="memory budget, e.g. 3GB or 800MB (default 3GB): a frame whose render would need "
+        "more is rendered in bands of rows (the same pixels), as high as the budget allows",
+    )
+    render.add_argument("--quiet", action="store_true", help="no progress on stderr")
     _add_lens_options(render, start=False)
     _add_filter_options(render)
     _add_file_options(render)

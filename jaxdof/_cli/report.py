@@ -1,5 +1,5 @@
-"""What the CLI prints: a fit as text or JSON, a file's `info`, the EXIF a fit starts from, the
-demo's table, and the solver's progress."""
+"""What the CLI prints: a fit as text or JSON, a file's `info`, the EXIF a fit starts from, and
+the demo's table (the progress while it works: `progress`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import json
 import sys
 import types
 
-import jax
 import numpy as np
 
 from .parse import FIELDS
@@ -226,68 +225,3 @@ def print_demo(truth, start, result) -> None:
         )
     verdict = "converged" if result.success else "did NOT converge"
     print(f"{verdict} in {int(result.num_steps)} steps, loss {float(result.loss):.3g}")
-
-
-# ----------------------------------------------------------------------------------------------
-# Progress
-
-
-class Progress:
-    """A `fit_lens` `verbose` callable: one stderr line per accepted step of each start.
-
-    optimistix calls it inside the compiled solve, once per solver step, with `(description,
-    value)` pairs as keywords; the values are traced, so they reach Python through
-    `jax.debug.callback`. Two things make its raw calls repeat themselves, and are undone here:
-
-    - It fires on every trial step, accepted or not; the loss it reports is the last accepted
-      one. A line is printed only when the start's count of accepted steps grows.
-    - `fit_lens` solves all starts at once under `vmap`, whose loop runs until the last start is
-      done; the starts already done report their final state again at every step. JAX runs the
-      callback once per start, in order of the batch (`ordered=True`; unordered ones are
-      reordered), without saying which start it is: the calls of one solver step come as starts
-      0, 1, ..., and a solve begins with every start at step 0, which counts the starts.
-
-    `fit_lens` runs one solve per pyramid level (coarsest first) and per refit of a grown window;
-    lines are tagged `solve k` (1, 2, ... in order) and `start i` within it.
-    """
-
-    def __init__(self):
-        self._solve = 0
-        self._starts = 0  # in the current solve
-        self._calls = 0  # since the current solve's first step
-        self._accepted: dict[int, int] = {}  # start -> accepted steps already printed
-        self._stepping = True  # the last call was past step 0: a step-0 call begins a solve
-
-    def __call__(self, **kwargs):
-        # optimistix >= 0.1 passes (description, value) pairs; other solvers may pass fewer.
-        names = ("num_steps", "accepted_steps", "loss_last_accepted_step")
-        if all(name in kwargs for name in names):
-            values = [kwargs[name][1] for name in names]
-            jax.debug.callback(self._record, *values, ordered=True)
-
-    def _record(self, step, accepted, loss) -> None:
-        steps, accepted, loss = (np.reshape(np.asarray(x), -1) for x in (step, accepted, loss))
-        batched = steps.size > 1  # one call for all starts (a JAX that does not unroll vmap)
-        for i in range(steps.size):
-            start = i if batched else None
-            self._one(int(steps[i]), int(accepted[i]), float(loss[i]), start)
-
-    def _one(self, step: int, accepted: int, loss: float, start: int | None) -> None:
-        if step == 0:  # every start's first call; nothing is accepted yet (the loss is 0)
-            if self._stepping:
-                self._solve, self._starts, self._accepted = self._solve + 1, 0, {}
-                self._stepping = False
-            self._starts += 1
-            return
-        if not self._stepping:
-            self._stepping, self._calls = True, 0
-        if start is None:
-            start = self._calls % max(self._starts, 1)
-            self._calls += 1
-        if accepted > self._accepted.get(start, 0):
-            self._accepted[start] = accepted
-            print(
-                f"  solve {self._solve} start {start}  step {step:3d}  loss {loss:.6g}",
-                file=sys.stderr,
-                flush=True,
-            )

@@ -77,5 +77,6 @@ from .._fit.adequacy import (  # noqa: F401
     adequacy as adequacy,
     rounding_noise as rounding_noise,
 )
+from .._render import estimate_memory as estimate_memory
 from ._study import footprint_radius as footprint_radius, pixel_prefilter as pixel_prefilter
 from ._textbook import textbook_overlap as textbook_overlap
