@@ -22,7 +22,6 @@ from ._filters import (
     Aperture,
     Auto,
     Hard,
-    Jitter,
     Layered,
     Soft,
     Supersample,
@@ -373,11 +372,10 @@ def _memory_kind(method: AbstractMethod, window: float) -> str:
 
 def _needs_whole_frame(method: str | AbstractMethod) -> bool:
     """Whether `method` decides from the whole frame, so that bands would change its pixels:
-    a method that reads depth (`Occlusion`: its depth layers are cut at the largest depth gaps
-    of all pixels) and `Jitter` (each pixel's sample pattern is drawn over the frame's shape).
-    (A class variable of `AbstractMethod` would say this better; here until the filters have one.)"""
+    one that is not `local` (`Jitter`) or reads depth (`Occlusion`: its depth layers are cut at
+    the largest depth gaps of all pixels); see `AbstractMethod`."""
     method = as_method(method)
-    return method.uses_depth or isinstance(method, Jitter)
+    return method.uses_depth or not method.local
 
 
 def _cut_rows(method: AbstractMethod, shape: tuple[int, ...], lo: int, hi: int):

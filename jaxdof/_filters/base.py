@@ -35,6 +35,11 @@ class AbstractMethod(eqx.Module):
       (`jaxdof.fit_lens` refuses a method for which it is `False`).
     - `uses_depth` (class variable, default `False`): whether the method reads the depth map
       (occlusion ordering); `jaxdof.render` then passes it.
+    - `local` (class variable, default `True`): whether every output pixel depends only on the
+      inputs within the window around it, so that `jaxdof.render(..., band_rows=)` may render
+      the frame in bands; `False` for a method that decides from the whole frame (`Jitter`'s
+      per-pixel sample patterns are drawn over the frame's shape). A method that `uses_depth` is
+      rendered whole too (its depth ordering may be global, as `Occlusion`'s layers are).
     - `prepare(radius, max_radius)`: optional precomputation on a *concrete* radius map (numpy),
       e.g. radius levels or the choice of a kernel; returns the method to call (default: itself).
       Not called when the radius is traced (under `jit`/`grad`), so the method must work without
@@ -55,6 +60,7 @@ class AbstractMethod(eqx.Module):
 
     differentiable_in_radius: ClassVar[bool]
     uses_depth: ClassVar[bool] = False
+    local: ClassVar[bool] = True
 
     def prepare(self, radius: np.ndarray, max_radius: float) -> AbstractMethod:
         """Precompute on a concrete radius map `(H, W)` (pixels, clamped to `max_radius`)."""

@@ -204,6 +204,7 @@ class Jitter(AbstractMethod):
     key: PRNGKeyArray
 
     differentiable_in_radius: ClassVar[bool] = False
+    local: ClassVar[bool] = False  # each pixel's pattern is drawn over the frame's shape
 
     def __init__(self, *, samples: int = 16, key: ArrayLike | None = None):
         self.samples = check_int("samples", samples, 1)

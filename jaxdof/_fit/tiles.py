@@ -134,7 +134,7 @@ def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
     return int(tiles)
 
 
-def _scout(p: Problem, forward, rows0: np.ndarray):
+def _scout(p: Problem):
     """The problem box-averaged to at most `SCOUT_SIDE` px: its arrays and the factor `q`."""
     level = (p.image, p.depth, p.targets, p.sqrt_w, p.b)
     q = 1
@@ -147,7 +147,7 @@ def _scout(p: Problem, forward, rows0: np.ndarray):
 def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarray, int]:
     """`(h, w, P, P)`: each reduced pixel's Fisher information about the free parameters (in the
     solver's coordinates, unit noise) at the first start (`init`), and the reduction factor."""
-    (im, dep, tg, sw, b), q = _scout(p, forward, rows0)
+    (im, dep, tg, sw, b), q = _scout(p)
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
     rows = np.asarray(rows0[:1], np.float64).copy()
     rows[..., 3] = rows[..., 3] * q
