@@ -488,6 +488,7 @@ def fit_call(args, display: Display | None = None) -> FitCall:
         max_radius=args.max_radius,
         weight=weight,
         border=args.border,
+        tiles=args.tiles,
         verbose=verbose,
         **model,
     )

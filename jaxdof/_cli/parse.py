@@ -95,6 +95,23 @@ def parse_border(text: str) -> str | int:
     return value
 
 
+def parse_tiles(text: str) -> str | int | None:
+    """`fit --tiles`: `auto` (tiles for photos over 1 MP), `off` (the whole frame) or a budget
+    of photo pixels > 0."""
+    word = text.strip().lower()
+    if word in ("auto", "off"):
+        return "auto" if word == "auto" else None
+    try:
+        value = int(word)
+    except ValueError:
+        value = 0
+    if value <= 0:
+        raise argparse.ArgumentTypeError(
+            f"bad tiles {text!r}: give auto, off or a budget of photo pixels (an integer > 0)"
+        )
+    return value
+
+
 def parse_focal_length(text: str) -> float:
     """As `parse_length`, but a bare number of 1 or more (`50`) is refused: it is surely mm."""
     value, unit = _length(text)
@@ -369,6 +386,35 @@ def _add_render(sub) -> None:
     _add_file_options(render)
 
 
+def _add_fit_pixels(fit) -> None:
+    """`fit`'s options that choose which photo pixels are fitted: weights, border, tiles."""
+    fit.add_argument(
+        "--weight",
+        metavar="FILE",
+        help="per-pixel weights >= 0 (an inverse variance) or a 0/1 mask, (H, W) at the photo's "
+        "pixels (the TARGETs'), the same for every TARGET: grayscale, or RGB with equal channels "
+        "(one is taken); integer files scale to [0, 1] (no sRGB decoding), float files are as "
+        "they are; 0 leaves a pixel out of the fit",
+    )
+    fit.add_argument(
+        "--border",
+        type=parse_border,
+        default="auto",
+        metavar="{auto,off,N}",
+        help="the band along the photo's edges left out of the fit, where light from outside the "
+        "frame lands: auto (default: the filter window's reach), off (keep every pixel) or N "
+        "photo pixels",
+    )
+    fit.add_argument(
+        "--tiles",
+        type=parse_tiles,
+        default="auto",
+        metavar="{auto,off,N}",
+        help="fit on informative tiles of the photo: auto (default: 2^17 pixels of tiles for "
+        "photos over 2^20 pixels), off (the whole frame) or a budget of N photo pixels",
+    )
+
+
 def _add_fit(sub) -> None:
     fit = sub.add_parser(
         "fit",
@@ -408,23 +454,7 @@ def _add_fit(sub) -> None:
         metavar="PX",
         help="filter window in pixels (default: chosen by the fit)",
     )
-    fit.add_argument(
-        "--weight",
-        metavar="FILE",
-        help="per-pixel weights >= 0 (an inverse variance) or a 0/1 mask, (H, W) at the photo's "
-        "pixels (the TARGETs'), the same for every TARGET: grayscale, or RGB with equal channels "
-        "(one is taken); integer files scale to [0, 1] (no sRGB decoding), float files are as "
-        "they are; 0 leaves a pixel out of the fit",
-    )
-    fit.add_argument(
-        "--border",
-        type=parse_border,
-        default="auto",
-        metavar="{auto,off,N}",
-        help="the band along the photo's edges left out of the fit, where light from outside the "
-        "frame lands: auto (default: the filter window's reach), off (keep every pixel) or N "
-        "photo pixels",
-    )
+    _add_fit_pixels(fit)
     fit.add_argument(
         "--json",
         action="store_true",

@@ -92,6 +92,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._custom_types import AnyFloatLike, ScalarLike
+from .linalg import pinv, symmetric_eigh, thin_svd
 
 
 #: The nominal false-alarm rate of the test (its significance level).
@@ -259,11 +260,11 @@ def _factors(jt: Array, rt: Array) -> _Factors:
     the pooled term `b^T A^+ b` of the statistic."""
     dtype = jt.dtype
     p = jt.shape[2]
-    u, s, vt = jnp.linalg.svd(jt, full_matrices=False)  # (K, m, k), (K, k), (K, k, p)
+    u, s, vt = thin_svd(jt)  # (K, m, k), (K, k), (K, k, p)
     cproj = jnp.einsum("kmi,km->ki", u, rt)  # U_k^T r_k: b_k^T A_k^+ b_k = |c_k|^2
     # The global problem from the tiles' factors: J^T J = M^T M, J^T r = M^T c (no squaring).
     big_m = (s[:, :, None] * vt).reshape(-1, p)
-    um, sm, vtm = jnp.linalg.svd(big_m, full_matrices=False)
+    um, sm, vtm = thin_svd(big_m)
     tol = math.sqrt(float(jnp.finfo(dtype).eps)) * sm[0]
     good = sm > tol
     kept = s > tol
@@ -281,7 +282,7 @@ def _tile_sums(f: _Factors, jt: Array, rt: Array, xt: Array | None) -> tuple[Arr
     if xt is None:
         q_tiles = jnp.sum(jnp.where(f.kept, f.cproj * f.cproj, 0))
         return q_tiles, jnp.sum(f.kept).astype(dtype)
-    ua, sa, _ = jnp.linalg.svd(jnp.concatenate([jt, xt], axis=2), full_matrices=False)
+    ua, sa, _ = thin_svd(jnp.concatenate([jt, xt], axis=2))
     ca = jnp.einsum("kmi,km->ki", ua, rt)
     kept_a = sa > f.tol
     return jnp.sum(jnp.where(kept_a, ca * ca, 0)), jnp.sum(kept_a).astype(dtype)
@@ -297,12 +298,12 @@ def _exposure_shift(f: _Factors, jt: Array, rt: Array, xt: Array | None) -> Arra
     p = jt.shape[2]
     if xt is None:
         return jnp.zeros((p,), jt.dtype)
-    ux, sx, _ = jnp.linalg.svd(xt, full_matrices=False)  # (K, m, E)
+    ux, sx, _ = thin_svd(xt)  # (K, m, E)
     ux = jnp.where((sx > f.tol)[:, None, :], ux, 0)
     jp = jt - jnp.einsum("kme,ken->kmn", ux, jnp.einsum("kme,kmn->ken", ux, jt))
     rp = rt - jnp.einsum("kme,ke->km", ux, jnp.einsum("kme,km->ke", ux, rt))
     # The stacked projected tiles: their SVD gives (sum_k P_k)^+ without squaring them.
-    u, s, vt = jnp.linalg.svd(jp.reshape(-1, p), full_matrices=False)
+    u, s, vt = thin_svd(jp.reshape(-1, p))
     inv = jnp.where(s > f.tol, 1 / jnp.where(s > f.tol, s, 1), 0)
     return -(vt.T * inv[None, :]) @ (u.T @ rp.reshape(-1))
 
@@ -368,8 +369,8 @@ def _spread(
     noise = var * (a_all - jnp.einsum("kij,jl,klm->im", a_k, a_pinv, a_k))
     rhs = small * (scores.T @ scores - noise)
     kron = jnp.einsum("kab,kcd->acbd", a_k, a_k).reshape(p * p, p * p)
-    omega = (jnp.linalg.pinv(kron) @ rhs.reshape(-1)).reshape(p, p)
-    ev, evec = jnp.linalg.eigh(0.5 * (omega + omega.T))
+    omega = (pinv(kron, 10 * p * p * float(jnp.finfo(dtype).eps)) @ rhs.reshape(-1)).reshape(p, p)
+    ev, evec = symmetric_eigh(0.5 * (omega + omega.T))
     omega = (evec * jnp.maximum(ev, 0)[None, :]) @ evec.T + jnp.outer(shift, shift)
     # V_fit = var_fit A^+ (what the fit reports). The largest eigenvalue of
     # V_fit^{-1/2} Omega V_fit^{-1/2}, in the basis of A's singular vectors: S V^T Omega V S.
@@ -377,7 +378,7 @@ def _spread(
     safe_var = jnp.where(var_fit > 0, var_fit, 1)
     sv = f.sm[:, None] * (f.vtm @ omega @ f.vtm.T) * f.sm[None, :]
     sv = jnp.where(f.good[:, None] & f.good[None, :], sv, 0)
-    tiles_ratio = 1 + jnp.linalg.eigvalsh(sv)[-1] / safe_var
+    tiles_ratio = 1 + symmetric_eigh(sv)[0][-1] / safe_var
     birge = chi2_num / safe_dof / safe_var
     spread = jnp.sqrt(jnp.maximum(jnp.maximum(tiles_ratio, birge), 1))
     return jnp.where((k_eff >= 2) & (var_fit > 0), spread, 1)

@@ -39,13 +39,15 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, PyTree, Scalar
 
+from .linalg import thin_svd
+
 
 def relative_offset(residual: Array, jac: Array, rank_tol: float) -> Array:
     """Bates & Watts' relative offset (module docstring) at a point with residual `(n,)` and
     Jacobian `(n, P)`; columns whose singular value is under `rank_tol` times the largest (unread
     slots, a degenerate pair) do not count. `inf` where it is undefined (no column, no residual
     left over)."""
-    u, s, _ = jnp.linalg.svd(jac, full_matrices=False)
+    u, s, _ = thin_svd(jac)
     keep = s > rank_tol * s[0]
     q1 = jnp.where(keep, u.T @ residual, 0)
     p = jnp.sum(keep).astype(residual.dtype)

@@ -40,6 +40,7 @@ from .._lens import ThinLens
 from .adequacy import adequacy, rounding_noise
 from .forward import AbstractForwardModel
 from .layout import _W_MIN, _Spec, theta_floor
+from .linalg import thin_svd
 from .lm import LevenbergMarquardt
 from .prepare import _check_names, _prepare, check_differentiable, forward_model
 from .residual import _Model
@@ -97,7 +98,7 @@ def _statistics(residual, jac, g, theta, floor, n, used: tuple[int, ...]) -> dic
     scale = jnp.sqrt(jnp.sum(jac * jac, axis=0))
     safe = jnp.where(scale > 0, scale, 1)
     # Column scaling makes the rank test independent of the units of each coordinate.
-    _, s, vt = jnp.linalg.svd(jac / safe[None, :], full_matrices=False)
+    _, s, vt = thin_svd(jac / safe[None, :])
     good = s > _rank_tol(dtype) * s[0]
     inv_s2 = jnp.where(good, 1 / jnp.where(good, s * s, 1), 0)
     cov_y = sigma2 * ((vt.T * inv_s2[None, :]) @ vt) / safe[:, None] / safe[None, :]

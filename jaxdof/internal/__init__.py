@@ -31,6 +31,8 @@ What is here (re-exports only):
   `kernel_variance` (the filter kernel's variance, under `jaxdof.footprint_prefilter`), and the
   study-only candidates that lost to `footprint_prefilter` against ray tracing
   (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
+- **Files**: `read_image` and `write_image`, the CLI's readers and writers (linear light;
+  16-bit PNG and TIFF, sRGB encoding), for studies that make their scenes as files.
 - **Overlap**: `textbook_overlap`, the inclusion-exclusion form of the circle-pixel overlap that
   `jaxdof.circle_pixel_overlap` avoids (its float32 cancellation, measured by `fits/stability.py`).
 """
@@ -77,6 +79,7 @@ from .._fit.adequacy import (  # noqa: F401
     adequacy as adequacy,
     rounding_noise as rounding_noise,
 )
+from .._io import read_image as read_image, write_image as write_image
 from .._render import estimate_memory as estimate_memory
 from ._study import footprint_radius as footprint_radius, pixel_prefilter as pixel_prefilter
 from ._textbook import textbook_overlap as textbook_overlap

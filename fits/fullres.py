@@ -1,0 +1,265 @@
+"""Calibrating from full-resolution photos: wall time, peak memory and accuracy of `jaxdof fit`
+against the tile budget, beside the whole-frame fit (issue 22, item 5).
+
+Question: how long does the command a user runs (`jaxdof fit sharp.png depth.npy photo.png
+--focal-length 50mm --f-number 5.6 --focus 2m --json`) take on 1.5, 6 and 24 MP photos, how
+much memory does it hold, and what does fitting on informative tiles (`--tiles N`, default
+`auto`) cost in accuracy against the whole frame (`--tiles off`)?
+
+Scene (procedural, `scene`): a textured ground plane receding from 1.2 m (bottom edge) to a
+wall at 12 m, two boxes standing on it at 1.8 m and 5 m; texture at 1 to 64 px scales, so every
+resolution has detail to blur. Lens: 50 mm on a 36 mm-wide sensor focused at 3 m; the f-number
+puts the largest circle near 9.5 px at 1.5 and 6 MP (f/2.8, f/5.6) and 13 px at 24 MP (f/8).
+Photo: `jaxdof.render` (soft, the default), plus Gaussian noise of 0.003 (linear), stored as
+16-bit sRGB PNG like the all-in-focus image; depth as float32 `.npy`. Start: f/5.6 at 2 m
+(f/4 at 2 m for the f/5.6 truth).
+
+Every fit is a fresh process (`python -m jaxdof fit ...`, reading and compiling included), timed
+by wall clock, its peak resident memory from `wait4`. Errors are relative to the truth; `z` is
+the error in reported standard errors.
+
+Run:
+
+    python fits/fullres.py              # 1.5 MP budgets and whole frame, 6 MP, 24 MP
+    python fits/fullres.py --quick      # 1.5 MP only: default, two budgets, whole frame
+    python fits/fullres.py --sizes 24   # only the 24 MP default
+
+Scenes are cached in `fits/.cache/fullres/` (24 MP: 290 MB of files). Writes
+`fits/results/fullres{tag}.md`, `_raw.json` and `.png`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+from _common import CACHE, RESULTS, command, git_state, load_average, machine_info, save_json
+
+
+# size label -> (height, width, true f-number, start f-number)
+SIZES = {
+    "1.5": (1000, 1500, 2.8, 5.6),
+    "6": (2000, 3000, 5.6, 4.0),
+    "24": (4000, 6000, 8.0, 5.6),
+}
+FOCAL, FOCUS, START_FOCUS, SENSOR, NOISE = 0.05, 3.0, 2.0, 0.036, 0.003
+# the tile budgets of the 1.5 MP sweep (interior pixels), about 0.05 to 1 MP
+BUDGETS = [1 << 16, 1 << 17, 1 << 18, 1 << 19, 1 << 20]
+
+
+def scene(h: int, w: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """`(image (h, w, 3) linear, depth (h, w) m)`: the module docstring's scene."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    inv = 1 / 12 + (1 / 1.2 - 1 / 12) * np.clip((yy - 0.3 * h) / (0.7 * h - 1), 0, 1)
+    depth = (1 / inv).astype(np.float32)
+    tex = np.zeros((h, w), np.float32)
+    for s in (1, 4, 16, 64):  # value noise at four scales
+        n = rng.uniform(size=(h // s + 2, w // s + 2)).astype(np.float32)
+        tex += 0.25 * np.repeat(np.repeat(n, s, 0), s, 1)[:h, :w]
+    s = max(6, w // 250)
+    checker = ((yy // s + xx // s) % 2).astype(np.float32)
+    base = 0.1 + 0.45 * checker + 0.36 * tex
+    image = base[..., None] * np.stack(
+        [np.ones_like(xx), 0.6 + 0.4 * xx / w, 0.5 + 0.5 * yy / h], -1
+    )
+    boxes = [
+        ((0.25, 0.85), (0.10, 0.35), 1.8, (0.9, 0.3, 0.2)),
+        ((0.15, 0.55), (0.55, 0.85), 5.0, (0.2, 0.4, 0.9)),
+    ]
+    for (r0, r1), (c0, c1), d, colour in boxes:
+        rows, cols = slice(int(r0 * h), int(r1 * h)), slice(int(c0 * w), int(c1 * w))
+        depth[rows, cols] = d
+        image[rows, cols] = (0.3 + 0.7 * tex[rows, cols, None]) * np.asarray(colour, np.float32)
+    return np.clip(image, 0, 1).astype(np.float32), depth
+
+
+def make_scene(label: str) -> dict:
+    """The scene's files (made once, cached) and its true lens."""
+    import jax
+
+    import jaxdof
+    from jaxdof.internal import write_image
+
+    h, w, n_true, n_start = SIZES[label]
+    folder = CACHE / "fullres" / f"{h}x{w}"
+    files = {
+        k: str(folder / f)
+        for k, f in [("sharp", "sharp.png"), ("depth", "depth.npy"), ("photo", "photo.png")]
+    }
+    lens = jaxdof.ThinLens.from_sensor(FOCAL, n_true, FOCUS, sensor_width=SENSOR, image_width=w)
+    k_px = FOCAL**2 / (2 * n_true * (FOCUS - FOCAL)) / (SENSOR / w)
+    truth = dict(f_number=n_true, focus_distance=FOCUS, K_px=k_px, start_f_number=n_start)
+    if all(os.path.exists(f) for f in files.values()):
+        return dict(files=files, truth=truth, shape=(h, w))
+    folder.mkdir(parents=True, exist_ok=True)
+    image, depth = scene(h, w)
+    band_rows = None if h * w <= 4_000_000 else 1000  # 24 MP in bands (under 4 GB)
+    photo = np.asarray(jax.device_get(jaxdof.render(image, depth, lens, band_rows=band_rows)))
+    photo = photo + np.random.default_rng(1).normal(0, NOISE, photo.shape).astype(np.float32)
+    np.save(files["depth"], depth, allow_pickle=False)
+    write_image(files["sharp"], image, bits=16)
+    write_image(files["photo"], photo, bits=16)
+    return dict(files=files, truth=truth, shape=(h, w))
+
+
+def run_fit(sc: dict, tiles: str) -> dict:
+    """One `jaxdof fit` in a fresh process: wall time, peak memory, the JSON result."""
+    f, t = sc["files"], sc["truth"]
+    argv = [
+        sys.executable,
+        "-m",
+        "jaxdof",
+        "fit",
+        f["sharp"],
+        f["depth"],
+        f["photo"],
+        "--json",
+        "--quiet",
+    ]
+    argv += ["--focal-length", "50mm", "--f-number", str(t["start_f_number"]), "--focus", "2m"]
+    argv += ["--tiles", tiles]
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen(argv, stdout=out, stderr=err, text=True)
+        # wait4, not wait: the child's own peak resident set size (kB on Linux)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = rc = os.waitstatus_to_exitcode(status)
+        out.seek(0), err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    row = dict(tiles=tiles, wall_s=wall, rc=rc, peak_gb=usage.ru_maxrss / 2**20)
+    if rc not in (0, 1):
+        row["error"] = stderr.strip().splitlines()[-1:] or ["?"]
+        return row
+    res = json.loads(stdout)
+    k_fit = FOCAL**2 / (2 * res["f_number"] * (res["focus_distance"] - FOCAL)) / res["pixel_pitch"]
+    se = res["stderr"]
+    row.update(
+        success=res["success"],
+        status=res["status"],
+        f_number=res["f_number"],
+        focus_distance=res["focus_distance"],
+        err_N=res["f_number"] / t["f_number"] - 1,
+        err_d=res["focus_distance"] / t["focus_distance"] - 1,
+        err_K=k_fit / t["K_px"] - 1,
+        se_N=se["f_number"] / t["f_number"],
+        se_d=se["focus_distance"] / t["focus_distance"],
+        pixels=res["pixels_used"],
+        n_tiles=len(res.get("tiles") or []),
+        steps=res["steps"],
+    )
+    return row
+
+
+def _fmt(x, spec):
+    return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else format(x, spec)
+
+
+def report(rows: list[dict], info: dict, argv_line: str, path) -> None:
+    lines = [
+        "# Full-resolution fits: time, memory and accuracy against the tile budget",
+        "",
+        f"Command: `{argv_line}` ({git_state()}). Every row is one fresh `jaxdof fit` process "
+        "(reading, compiling and fitting; wall clock, peak RSS from `wait4`).",
+        "",
+        "| | |",
+        "|---|---|",
+        *[f"| {k} | {v} |" for k, v in info.items()],
+        "",
+        "Errors relative to the truth (%); `se` the reported standard error (%); K the blur scale.",
+        "",
+        "| photo | tiles | pixels fitted | wall s | peak GB | status | N err % | d_f err % | K err % | se N % | se d_f % | steps |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        if "error" in r:
+            lines.append(
+                f"| {r['size']} MP | {r['tiles']} | | {r['wall_s']:.1f} | {_fmt(r['peak_gb'], '.2f')} | error: {r['error'][0]} | | | | | | |"
+            )
+            continue
+        lines.append(
+            f"| {r['size']} MP | {r['tiles']} | {r['pixels']:,} ({r['n_tiles']} tiles) | {r['wall_s']:.1f} | "
+            f"{_fmt(r['peak_gb'], '.2f')} | {r['status']} | {100 * r['err_N']:+.3f} | {100 * r['err_d']:+.3f} | "
+            f"{100 * r['err_K']:+.3f} | {100 * r['se_N']:.3f} | {100 * r['se_d']:.3f} | {r['steps']} |"
+        )
+    path.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def plot(rows: list[dict], path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    sub = [r for r in rows if r["size"] == "1.5" and "error" not in r]
+    if not sub:
+        return
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for r in sub:
+        x = r["pixels"] / 1e6
+        axes[0].plot(x, r["wall_s"], "o", color="C0" if r["tiles"] != "off" else "C3")
+        axes[1].errorbar(
+            x,
+            100 * r["err_d"],
+            yerr=100 * r["se_d"],
+            fmt="o",
+            color="C0" if r["tiles"] != "off" else "C3",
+        )
+    axes[0].set(
+        xscale="log",
+        xlabel="pixels fitted (MP)",
+        ylabel="wall s (fresh process)",
+        title="1.5 MP photo: time",
+    )
+    axes[1].set(
+        xscale="log",
+        xlabel="pixels fitted (MP)",
+        ylabel="focus distance error % (+- 1 se)",
+        title="accuracy (red: whole frame)",
+    )
+    axes[1].axhline(0, color="k", lw=0.5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--quick", action="store_true", help="1.5 MP only: default, two budgets, whole frame"
+    )
+    parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
+    parser.add_argument("--tag", default="")
+    args = parser.parse_args(argv)
+    info = machine_info()
+    info["load average at start"] = load_average()
+    plan = []
+    for size in ["1.5"] if args.quick else args.sizes:
+        if size == "1.5":
+            budgets = [1 << 16, 1 << 18] if args.quick else BUDGETS
+            plan += [(size, t) for t in ["auto", *map(str, budgets), "off"]]
+        elif size == "6":
+            plan += [(size, "auto"), (size, "off")]
+        else:
+            plan += [(size, "auto")]
+    rows = []
+    for size, tiles in plan:
+        sc = make_scene(size)
+        row = dict(size=size, **run_fit(sc, tiles))
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    base = RESULTS / f"fullres{args.tag}"
+    save_json(base.with_name(base.name + "_raw.json"), dict(rows=rows, info=info))
+    report(rows, info, command("fits/fullres.py", argv), base.with_suffix(".md"))
+    plot(rows, base.with_suffix(".png"))
+
+
+if __name__ == "__main__":
+    main()
