@@ -233,7 +233,7 @@ def _full_resolution(run: _Run, y0s, rows: np.ndarray, window: float):
     p = run.problem
     cap = float(max(p.photo))
     if run.levels > 1 and run.max_radius is None:
-        window = window_for(run.forward.max_circle(rows, p.d), cap)
+        window = _fine_window(run, rows)
     notes = []
     y0s = _search_on_every_pixel(run, window, y0s)
     model, solution, info, args, (band, wanted) = run.solve(window, y0s, p.args, 0, run.solver)
@@ -264,6 +264,34 @@ def _full_resolution(run: _Run, y0s, rows: np.ndarray, window: float):
             "the edges, which lack that light, bias the fit; use a larger image"
         )
     return model, solution, info, r_final, window, notes, args, band
+
+
+def _fine_window(run: _Run, rows: np.ndarray) -> float:
+    """The full-resolution window after coarse levels: the reach of the coarse solutions' circles.
+    The init, which `_coarse_to_fine` appends as the last start, does not widen it: its circles
+    (often the largest, from a start far off) would set the cost of every step (24 MP, f/5.6 at
+    2 m for an f/8 truth: a 32 px window for 13 px circles). Its render is then clamped to the
+    window; should it win with circles beyond it, `_full_resolution` refits with a larger one."""
+    p = run.problem
+    return window_for(run.forward.max_circle(rows[:-1], p.d), float(max(p.photo)))
+
+
+def _narrow_halos(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray):
+    """The same tiles with halos of the full-resolution window's reach, when that is smaller than
+    the reach they were cut for: `(run, tiles)` on the new mosaic.
+
+    The tiles' halos hold the window of every start (starts spread in f-number and diopters make
+    large circles), while the full-resolution solve's window follows the coarse solution's
+    circles (`_full_resolution`, the same rule): on the 1.5 MP scene of `fits/fullres.py`, 24 px
+    halos around 48 px tiles for a 12 px window, 96^2 pixels rendered per 48^2 fitted instead
+    of 72^2. The coarse levels, where pixels are cheap, keep the wide halos."""
+    if run.levels == 1 or run.max_radius is not None:
+        return run, chosen
+    halo = run.forward.border_band(_fine_window(run, rows))
+    if halo >= chosen.halo:
+        return run, chosen
+    narrow = dataclasses.replace(chosen, halo=halo)
+    return dataclasses.replace(run, problem=tiled_problem(whole, narrow)), narrow
 
 
 def _fields_text(names, theta) -> str:
@@ -719,6 +747,7 @@ def fit_lens(
         window = float(max_radius)
     budget = use_tiles(tiles, p.photo)
     chosen = None if budget is None else choose_tiles(p, forward, rows0, window, budget)
+    whole = p
     if chosen is not None:
         p, band = tiled_problem(p, chosen), 0  # each tile's halo is its border band
     if levels is None:
@@ -731,6 +760,8 @@ def fit_lens(
     run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, levels, band)
     try:
         y0s, rows = _coarse_to_fine(run, rows0, window)
+        if chosen is not None:
+            run, chosen = _narrow_halos(run, whole, chosen, rows)
         model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
             run, y0s, rows, window
         )

@@ -54,8 +54,12 @@ def relative_offset(residual: Array, jac: Array, rank_tol: float) -> Array:
     # Residuals with zero weight (the border band) are exactly 0 with a zero Jacobian row.
     n = jnp.sum((residual != 0) | jnp.any(jac != 0, axis=1)).astype(residual.dtype)
     explained = q1 @ q1
-    rest = residual @ residual - explained
-    ok = (p > 0) & (n > p) & (rest > 0)
+    total = residual @ residual
+    rest = total - explained
+    # `rest` is a difference of sums of squares: below their rounding (~ sqrt(n) eps |r|^2) it is
+    # no residual left over at all.
+    rounding = 10 * jnp.sqrt(n) * jnp.finfo(residual.dtype).eps * total
+    ok = (p > 0) & (n > p) & (rest > rounding)
     per_param = explained / jnp.maximum(p, 1.0)
     per_residual = jnp.where(ok, rest / jnp.maximum(n - p, 1.0), 1.0)
     return jnp.where(ok, jnp.sqrt(per_param / per_residual), jnp.inf)
