@@ -617,3 +617,28 @@ def test_bad_inputs(files):
         assert expect in line, (argv, line)
     _unchanged(d, hashes)
     assert sorted(p.name for p in pathlib.Path(d).iterdir()) == sorted(hashes)  # nothing written
+
+
+def test_fit_plot_outlines_the_fitted_tiles(tmp_path):
+    """`--plot` of a fit on tiles outlines them on the residual panel (`FitResult.tiles`)."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    from jaxdof._cli import plot
+
+    drawn = []
+    real_savefig = plt.Figure.savefig
+
+    def savefig(fig, *args, **kwargs):
+        drawn.extend((ax.get_title(), len(ax.patches)) for ax in fig.axes if ax.get_title())
+        return real_savefig(fig, *args, **kwargs)
+
+    image = np.full((16, 20, 3), 0.5, np.float32)
+    columns = [("target", image, "image"), ("residual (refit - target)", image - 0.5, "residual")]
+    boxes = ((2, 3, 4, 4), (8, 10, 4, 4))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(plt.Figure, "savefig", savefig)
+        plot._grid(str(tmp_path / "fit.png"), columns, 1, [], "--plot", boxes=boxes)
+    assert ("residual (refit - target); 2 fitted tiles outlined", 2) in drawn
+    assert ("target", 0) in drawn
+    assert (tmp_path / "fit.png").exists()

@@ -75,11 +75,26 @@ def test_choice_follows_information_and_avoids_depth_edges():
         assert r + 32 + chosen.halo <= 96  # clear of the depth step
 
 
+class _Stages:
+    """A `verbose` callable that only records the stages `fit_lens` announces."""
+
+    def __init__(self):
+        self.seen = []
+
+    def __call__(self, **kwargs):
+        pass
+
+    def stage(self, text):
+        self.seen.append(text)
+
+
 def test_fit_on_tiles_recovers_the_lens():
     image, depth, rng = scene()
     photo = np.asarray(jaxdof.render(image, depth, TRUTH)) + 0.003 * rng.standard_normal((S, S))
     init = jaxdof.ThinLens(F, 3.0, 1.6, PITCH)
-    res = jaxdof.fit_lens(image, depth, photo, init, tiles=4 * 32 * 32)
+    stages = _Stages()
+    res = jaxdof.fit_lens(image, depth, photo, init, tiles=4 * 32 * 32, verbose=stages)
+    assert stages.seen[0] == f"choosing tiles: {4 * 32 * 32} of {S * S} photo pixels"
     assert res.status in (jaxdof.RESULTS.successful, jaxdof.RESULTS.inconsistent), res.message
     # Tiles of at least 32 px and twice the final window's reach (refitted with a larger window
     # when the first one turns out too small), within the budget, inside the frame.

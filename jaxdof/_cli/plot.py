@@ -30,13 +30,22 @@ def check_plot(path: str | None, inputs: list[str], option: str) -> None:
         raise InputError(f"{option} {path}: the figure is written as PNG; name it *.png")
 
 
-def _grid(path: str, columns: list[tuple[str, np.ndarray, str]], rows: int, inputs, option) -> None:
+def _grid(
+    path: str,
+    columns: list[tuple[str, np.ndarray, str]],
+    rows: int,
+    inputs,
+    option,
+    boxes=(),
+) -> None:
     """A grid figure: `columns` is a flat list of `(title, array, kind)` with kind in
-    {"image", "residual", "coc"}, laid out `rows` by `len(columns) // rows`."""
+    {"image", "residual", "coc"}, laid out `rows` by `len(columns) // rows`; `boxes`
+    (`(row, column, height, width)`, a fit's tiles) are outlined on the residual panels."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
 
     ncols = len(columns) // rows
     fig, axes = plt.subplots(rows, ncols, figsize=(2.6 * ncols, 2.3 * rows), squeeze=False)
@@ -49,6 +58,10 @@ def _grid(path: str, columns: list[tuple[str, np.ndarray, str]], rows: int, inpu
             lim = float(np.max(np.abs(res))) or 1.0
             im = ax.imshow(res, cmap="RdBu", vmin=-lim, vmax=lim)
             fig.colorbar(im, ax=ax, fraction=0.046)
+            for r, c, h, w in boxes:  # the pixels the fit used
+                ax.add_patch(Rectangle((c - 0.5, r - 0.5), w, h, fill=False, lw=0.6, ec="k"))
+            if boxes:
+                title = f"{title}; {len(boxes)} fitted tiles outlined"
         else:
             im = ax.imshow(array, cmap="viridis")
             fig.colorbar(im, ax=ax, fraction=0.046)
@@ -86,7 +99,7 @@ def plot_fit(path: str, image, depth, targets, result, names, inputs, *, render_
             ("residual (refit - target)", refit - target, "residual"),
             ("CoC radius (px)", radius, "coc"),
         ]
-    _grid(path, columns, len(targets), inputs, "--plot")
+    _grid(path, columns, len(targets), inputs, "--plot", boxes=result.tiles or ())
 
 
 def plot_demo(path: str, image, target, refit, radius) -> None:

@@ -257,6 +257,12 @@ class FitProgress:
             else:
                 jax.debug.callback(self._record, *values, y, ordered=True)
 
+    def stage(self, text: str) -> None:
+        """Work `fit_lens` does outside the solver (`"choosing tiles ..."`): the status line, or
+        a line of its own in `lines` mode."""
+        self.display.status(text)
+        self.display.log(f"  {text} ({self.display.elapsed:.1f} s)")
+
     def close(self) -> None:
         """The last solve's summary (call when the fit has returned)."""
         self._summarise()

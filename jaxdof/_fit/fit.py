@@ -266,6 +266,13 @@ def _full_resolution(run: _Run, y0s, rows: np.ndarray, window: float):
     return model, solution, info, r_final, window, notes, args, band
 
 
+def _stage(verbose, text: str) -> None:
+    """Tell a `verbose` callable with a `stage` method what `fit_lens` does outside the solver."""
+    stage = getattr(verbose, "stage", None)
+    if callable(stage):
+        stage(text)
+
+
 def _fine_window(run: _Run, rows: np.ndarray) -> float:
     """The full-resolution window after coarse levels: the reach of the coarse solutions' circles.
     The init, which `_coarse_to_fine` appends as the last start, does not widen it: its circles
@@ -276,22 +283,24 @@ def _fine_window(run: _Run, rows: np.ndarray) -> float:
     return window_for(run.forward.max_circle(rows[:-1], p.d), float(max(p.photo)))
 
 
-def _narrow_halos(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray):
-    """The same tiles with halos of the full-resolution window's reach, when that is smaller than
-    the reach they were cut for: `(run, tiles)` on the new mosaic.
+def _retile(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray, budget: int):
+    """The full-resolution tiles, chosen again at the coarse levels' best solution, with halos
+    of the full-resolution window: `(run, tiles)` on the new mosaic (the first tiles where the
+    photo has too few candidates for the new ones).
 
-    The tiles' halos hold the window of every start (starts spread in f-number and diopters make
-    large circles), while the full-resolution solve's window follows the coarse solution's
-    circles (`_full_resolution`, the same rule): on the 1.5 MP scene of `fits/fullres.py`, 24 px
-    halos around 48 px tiles for a 12 px window, 96^2 pixels rendered per 48^2 fitted instead
-    of 72^2. The coarse levels, where pixels are cheap, keep the wide halos."""
+    The first tiles were chosen at the `init` lens, whose circles may be far from the photo's,
+    and with halos of every start's reach (starts spread in f-number and diopters make large
+    circles); the coarse levels, where pixels are cheap, run on them. The full-resolution solve
+    renders its tiles at the coarse solution's window (`_fine_window`), and the information
+    that chooses them is the information at that lens. On the 1.5 MP scene of `fits/fullres.py`
+    (init f/5.6 at 2 m, truth f/2.8 at 3 m) the halos shrink from 24 to 12 px (a level-0 step
+    0.5 s against 0.9 s)."""
     if run.levels == 1 or run.max_radius is not None:
         return run, chosen
-    halo = run.forward.border_band(_fine_window(run, rows))
-    if halo >= chosen.halo:
+    new = choose_tiles(whole, run.forward, rows[:1], _fine_window(run, rows), budget)
+    if new is None:
         return run, chosen
-    narrow = dataclasses.replace(chosen, halo=halo)
-    return dataclasses.replace(run, problem=tiled_problem(whole, narrow)), narrow
+    return dataclasses.replace(run, problem=tiled_problem(whole, new)), new
 
 
 def _fields_text(names, theta) -> str:
@@ -630,7 +639,8 @@ def fit_lens(
       distance fixed, `K` spread by factors of 2. All starts run as one vmapped solve.
     - `verbose`: `True` prints step, loss and the current lens of every start while solving; a
       callable is passed to the optimistix solver as its `verbose` (it receives `(name, value)`
-      pairs, with `y` in the solver's coordinates).
+      pairs, with `y` in the solver's coordinates); if it has a `stage(text)` method, that is
+      told the work done outside the solver ("choosing tiles ...").
     - `model`: the forward model, a `jaxdof.AbstractForwardModel`; default
       `jaxdof.DefocusModel(method=method, footprint=footprint, downsample=downsample)`. A model of
       your own (a subclass) runs through the same solve, compiled for it.
@@ -673,7 +683,8 @@ def fit_lens(
       (default): photos of more than 2^20 pixels are fitted on square tiles (32 px, or twice
       the window's reach where that is more) holding 2^17 pixels in all (per photo), chosen greedily for the most information about the free
       parameters at the `init` lens (D-optimal, from the Jacobian on a reduced copy), away from
-      depth edges unless the model renders occlusion; an int: that budget of pixels (at any
+      depth edges unless the model renders occlusion, and chosen again at the coarse pyramid
+      levels' solution for the full-resolution solve; an int: that budget of pixels (at any
       photo size); `None` or `False`: the whole frame. Each tile keeps a halo of the window's
       reach with weight 0 (the border rule, per tile), so its pixels' residuals are exactly the
       whole-frame fit's; the standard errors are those of the pixels used. `FitResult.tiles`
@@ -746,6 +757,8 @@ def fit_lens(
     else:
         window = float(max_radius)
     budget = use_tiles(tiles, p.photo)
+    if budget is not None:
+        _stage(verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
     chosen = None if budget is None else choose_tiles(p, forward, rows0, window, budget)
     whole = p
     if chosen is not None:
@@ -760,8 +773,8 @@ def fit_lens(
     run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, levels, band)
     try:
         y0s, rows = _coarse_to_fine(run, rows0, window)
-        if chosen is not None:
-            run, chosen = _narrow_halos(run, whole, chosen, rows)
+        if chosen is not None and budget is not None:
+            run, chosen = _retile(run, whole, chosen, rows, budget)
         model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
             run, y0s, rows, window
         )
