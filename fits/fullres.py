@@ -23,6 +23,7 @@ Run:
     python fits/fullres.py              # 1.5 MP budgets and whole frame, 6 MP, 24 MP
     python fits/fullres.py --quick      # 1.5 MP only: default, two budgets, whole frame
     python fits/fullres.py --sizes 24   # only the 24 MP default
+    python fits/fullres.py --report-only   # the table and plot again from the raw file
 
 Scenes are cached in `fits/.cache/fullres/` (24 MP: 290 MB of files). Writes
 `fits/results/fullres{tag}.md`, `_raw.json` and `.png`.
@@ -39,7 +40,16 @@ import tempfile
 import time
 
 import numpy as np
-from _common import CACHE, RESULTS, command, git_state, load_average, machine_info, save_json
+from _common import (
+    CACHE,
+    RESULTS,
+    command,
+    git_state,
+    load_average,
+    load_json,
+    machine_info,
+    save_json,
+)
 
 
 # size label -> (height, width, true f-number, start f-number)
@@ -49,8 +59,10 @@ SIZES = {
     "24": (4000, 6000, 8.0, 5.6),
 }
 FOCAL, FOCUS, START_FOCUS, SENSOR, NOISE = 0.05, 3.0, 2.0, 0.036, 0.003
-# the tile budgets of the 1.5 MP sweep (interior pixels), about 0.05 to 1 MP
-BUDGETS = [1 << 16, 1 << 17, 1 << 18, 1 << 19, 1 << 20]
+# the tile budgets of the 1.5 MP sweep (interior pixels), about 0.06 to 0.5 MP (a 1 MP budget
+# leaves too few candidate tiles in 1.5 MP: the whole frame), and 1 MP at 6 MP
+BUDGETS = [1 << 16, 1 << 17, 1 << 18, 1 << 19]
+BUDGETS_6MP = [1 << 20]
 
 
 def scene(h: int, w: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +146,7 @@ def run_fit(sc: dict, tiles: str) -> dict:
         proc.returncode = rc = os.waitstatus_to_exitcode(status)
         out.seek(0), err.seek(0)
         stdout, stderr = out.read(), err.read()
-    row = dict(tiles=tiles, wall_s=wall, rc=rc, peak_gb=usage.ru_maxrss / 2**20)
+    row = dict(tiles=tiles, wall_s=wall, rc=rc, peak_gb=usage.ru_maxrss / 2**20)  # kB -> GiB
     if rc not in (0, 1):
         row["error"] = stderr.strip().splitlines()[-1:] or ["?"]
         return row
@@ -175,7 +187,7 @@ def report(rows: list[dict], info: dict, argv_line: str, path) -> None:
         "",
         "Errors relative to the truth (%); `se` the reported standard error (%); K the blur scale.",
         "",
-        "| photo | tiles | pixels fitted | wall s | peak GB | status | N err % | d_f err % | K err % | se N % | se d_f % | steps |",
+        "| photo | tiles | pixels fitted | wall s | peak GiB | status | N err % | d_f err % | K err % | se N % | se d_f % | steps |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
@@ -186,10 +198,32 @@ def report(rows: list[dict], info: dict, argv_line: str, path) -> None:
             continue
         lines.append(
             f"| {r['size']} MP | {r['tiles']} | {r['pixels']:,} ({r['n_tiles']} tiles) | {r['wall_s']:.1f} | "
-            f"{_fmt(r['peak_gb'], '.2f')} | {r['status']} | {100 * r['err_N']:+.3f} | {100 * r['err_d']:+.3f} | "
-            f"{100 * r['err_K']:+.3f} | {100 * r['se_N']:.3f} | {100 * r['se_d']:.3f} | {r['steps']} |"
+            f"{_fmt(r['peak_gb'], '.2f')} | {r['status']} | {100 * r['err_N']:+.4f} | {100 * r['err_d']:+.4f} | "
+            f"{100 * r['err_K']:+.4f} | {100 * r['se_N']:.4f} | {100 * r['se_d']:.4f} | {r['steps']} |"
         )
+    lines += ["", *_against_whole_frame(rows)]
     path.write_text("\n".join(lines) + "\n")
+
+
+def _against_whole_frame(rows: list[dict]) -> list[str]:
+    """Each size's default fit against its whole-frame fit: the standard errors' ratio and the
+    difference of the answers in the default fit's own standard errors (issue 22's goals)."""
+    out = []
+    ok = [r for r in rows if "error" not in r]
+    for size in SIZES:
+        auto = [r for r in ok if r["size"] == size and r["tiles"] == "auto"]
+        whole = [r for r in ok if r["size"] == size and r["tiles"] == "off"]
+        if not auto or not whole:
+            continue
+        a, w = auto[0], whole[0]
+        ratio = [a[k] / w[k] for k in ("se_N", "se_d")]
+        diff = [abs(a[k] - w[k]) / a[s] for k, s in (("err_N", "se_N"), ("err_d", "se_d"))]
+        out.append(
+            f"- {size} MP, default against the whole frame: standard errors {ratio[0]:.2f}x (N) and "
+            f"{ratio[1]:.2f}x (d_f); answers {diff[0]:.2f} and {diff[1]:.2f} of the default's "
+            f"standard errors apart; wall time {a['wall_s']:.1f} s against {w['wall_s']:.1f} s."
+        )
+    return out
 
 
 def plot(rows: list[dict], path) -> None:
@@ -236,24 +270,39 @@ def main(argv=None) -> None:
     )
     parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
     parser.add_argument("--tag", default="")
+    parser.add_argument(
+        "--report-only", action="store_true", help="rewrite the table and plot from the raw file"
+    )
     args = parser.parse_args(argv)
+    base = RESULTS / f"fullres{args.tag}"
+    if args.report_only:
+        raw = load_json(base.with_name(base.name + "_raw.json"))
+        report(
+            raw["rows"],
+            raw["info"],
+            raw.get("command", command("fits/fullres.py", argv)),
+            base.with_suffix(".md"),
+        )
+        plot(raw["rows"], base.with_suffix(".png"))
+        return
     info = machine_info()
     info["load average at start"] = load_average()
     sizes = ["1.5"] if args.quick else args.sizes
     budgets = [1 << 16, 1 << 18] if args.quick else BUDGETS
     plan = [(size, "auto") for size in sizes]
     plan += [("1.5", str(b)) for b in budgets if "1.5" in sizes]
+    plan += [("6", str(b)) for b in BUDGETS_6MP if "6" in sizes and not args.quick]
     # the whole-frame fits last: the longest (6 MP: many minutes on 2 cores)
     plan += [(size, "off") for size in sizes if size != "24"]
     rows = []
-    base = RESULTS / f"fullres{args.tag}"
     for size, tiles in plan:
         sc = make_scene(size)
         row = dict(size=size, **run_fit(sc, tiles))
         print(json.dumps(row), flush=True)
         rows.append(row)
         # written after every fit: a long whole-frame fit cut short keeps the rows before it
-        save_json(base.with_name(base.name + "_raw.json"), dict(rows=rows, info=info))
+        raw = dict(rows=rows, info=info, command=command("fits/fullres.py", argv))
+        save_json(base.with_name(base.name + "_raw.json"), raw)
         report(rows, info, command("fits/fullres.py", argv), base.with_suffix(".md"))
     plot(rows, base.with_suffix(".png"))
 

@@ -33,7 +33,10 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03) -> np.ndarray:
     one, changes depth by well under 3% per pixel at any ordinary resolution, so the default marks
     occlusion boundaries only. Infinite depths (sky) count as far.
     """
-    d = np.asarray(depth, np.float64)
+    d = np.asarray(depth)
+    # float32 stays float32 (a 3 % test needs no more; a 24 MP map in float64 would make ~1 GB
+    # of temporaries); other types become float64.
+    d = d if d.dtype == np.float32 else d.astype(np.float64)
     if d.ndim != 2:
         raise ValueError(f"depth must be an (H, W) map, got shape {d.shape}")
     if not (jump > 0):
@@ -43,8 +46,9 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03) -> np.ndarray:
         a = np.moveaxis(d, axis, 0)
         lo, hi = a[:-1], a[1:]
         with np.errstate(invalid="ignore"):  # inf - inf: both sky, no edge
-            rel = np.abs(lo - hi) / np.minimum(lo, hi)
-        step = np.nan_to_num(rel, nan=0.0, posinf=np.inf) > jump
+            rel = np.abs(lo - hi)
+            rel /= np.minimum(lo, hi)
+        step = np.nan_to_num(rel, copy=False, nan=0.0, posinf=np.inf) > jump
         e = np.moveaxis(edges, axis, 0)
         e[:-1] |= step
         e[1:] |= step
