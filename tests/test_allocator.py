@@ -41,7 +41,7 @@ _HEAP_PROBE = """
 import ctypes, sys
 if sys.argv[1] == "cli":
     from jaxdof._cli import main
-    assert main(["fit", "missing.png", "missing.npy", "photo.png"]) == 2
+    assert main(["info", "missing.png"]) == 2
 libc = ctypes.CDLL("libc.so.6")
 libc.sbrk.restype = libc.malloc.restype = ctypes.c_void_p
 libc.sbrk.argtypes, libc.malloc.argtypes = (ctypes.c_long,), (ctypes.c_size_t,)
@@ -63,7 +63,8 @@ def test_the_command_line_tool_makes_the_setting(tmp_path):
         )
         return out.stdout.strip() == "True"
 
-    # `fit` makes the setting before it reads its inputs (`render` decides by the frame's size)
+    # `info` (as `demo`) makes the setting before it reads its input (`render` and `fit` decide
+    # by the frame's size, after reading it)
     assert heap_grew("cli")  # a missing input (exit status 2), after the setting was made
     assert not heap_grew("plain")  # without the CLI: the block was mmapped
     assert list(tmp_path.iterdir()) == []  # nothing written

@@ -33,7 +33,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # --help, --version, or a one-line usage error
         return int(exc.code or 0)
-    if args.command != "render":  # render decides by the frame's size (`commands._render`)
+    if args.command not in ("render", "fit"):  # those decide by the frame's size (`commands`)
         # the application's call (see `jaxdof.retain_freed_memory`): XLA's per-call scratch is
         # then reused instead of faulted in anew, up to 2x on megapixel images
         retain_freed_memory()

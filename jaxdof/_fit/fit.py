@@ -48,7 +48,7 @@ from .strategies import (
     start_lenses,
     window_for,
 )
-from .tiles import Tiles, choose_tiles, tiled_problem, use_tiles
+from .tiles import Tiles, choose_tiles, scout_problem, tiled_problem, use_tiles
 from .verbose import _with_verbose
 
 
@@ -283,7 +283,7 @@ def _fine_window(run: _Run, rows: np.ndarray) -> float:
     return window_for(run.forward.max_circle(rows[:-1], p.d), float(max(p.photo)))
 
 
-def _retile(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray, budget: int):
+def _retile(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray, budget: int, scout):
     """The full-resolution tiles, chosen again at the coarse levels' best solution, with halos
     of the full-resolution window: `(run, tiles)` on the new mosaic (the first tiles where the
     photo has too few candidates for the new ones).
@@ -297,7 +297,7 @@ def _retile(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray, budget: 
     0.5 s against 0.9 s)."""
     if run.levels == 1 or run.max_radius is not None:
         return run, chosen
-    new = choose_tiles(whole, run.forward, rows[:1], _fine_window(run, rows), budget)
+    new = choose_tiles(whole, run.forward, rows[:1], _fine_window(run, rows), budget, scout)
     if new is None:
         return run, chosen
     return dataclasses.replace(run, problem=tiled_problem(whole, new)), new
@@ -759,7 +759,8 @@ def fit_lens(
     budget = use_tiles(tiles, p.photo)
     if budget is not None:
         _stage(verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
-    chosen = None if budget is None else choose_tiles(p, forward, rows0, window, budget)
+    scout = None if budget is None else scout_problem(p)  # for both choices of tiles
+    chosen = None if budget is None else choose_tiles(p, forward, rows0, window, budget, scout)
     whole = p
     if chosen is not None:
         p, band = tiled_problem(p, chosen), 0  # each tile's halo is its border band
@@ -774,7 +775,7 @@ def fit_lens(
     try:
         y0s, rows = _coarse_to_fine(run, rows0, window)
         if chosen is not None and budget is not None:
-            run, chosen = _retile(run, whole, chosen, rows, budget)
+            run, chosen = _retile(run, whole, chosen, rows, budget, scout)
         model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
             run, y0s, rows, window
         )
