@@ -93,6 +93,7 @@ class _Run:
     max_radius: float | None  # the user's window; None: automatic
     levels: int
     border: int | None  # the user's band (photo pixels); None: the window's (automatic)
+    tiled: bool = False  # fitted on tiles of the photo (`_fine_window`)
 
     def residual(self, window: float) -> _Model:
         """The residual function with a given filter window."""
@@ -274,13 +275,15 @@ def _stage(verbose, text: str) -> None:
 
 
 def _fine_window(run: _Run, rows: np.ndarray) -> float:
-    """The full-resolution window after coarse levels: the reach of the coarse solutions' circles.
-    The init, which `_coarse_to_fine` appends as the last start, does not widen it: its circles
-    (often the largest, from a start far off) would set the cost of every step (24 MP, f/5.6 at
-    2 m for an f/8 truth: a 32 px window for 13 px circles). Its render is then clamped to the
-    window; should it win with circles beyond it, `_full_resolution` refits with a larger one."""
+    """The full-resolution window after coarse levels: the reach of the starts' circles. On tiles
+    the init, which `_coarse_to_fine` appends as the last start, does not widen it: its circles
+    (often the largest, from a start far off) would set the cost of every step of a large photo
+    (24 MP, f/5.6 at 2 m for an f/8 truth: a 32 px window for 13 px circles). Its render is then
+    clamped to the window; should it win with circles beyond it, `_full_resolution` refits with
+    a larger one. (Whole-frame fits keep the init's reach, as validated by the studies.)"""
     p = run.problem
-    return window_for(run.forward.max_circle(rows[:-1], p.d), float(max(p.photo)))
+    starts = rows[:-1] if run.tiled else rows
+    return window_for(run.forward.max_circle(starts, p.d), float(max(p.photo)))
 
 
 def _retile(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray, budget: int, scout):
@@ -771,7 +774,18 @@ def fit_lens(
         one = len(rows0) == 1
         levels = 1 if one else auto_levels(p.photo, forward.max_circle(rows0[:1], p.d))
     user_window = None if max_radius is None else window
-    run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, levels, band)
+    run = _Run(
+        p,
+        forward,
+        solver,
+        coarse_solver,
+        verbose,
+        max_steps,
+        user_window,
+        levels,
+        band,
+        tiled=chosen is not None,
+    )
     try:
         y0s, rows = _coarse_to_fine(run, rows0, window)
         if chosen is not None and budget is not None:
