@@ -760,10 +760,11 @@ def fit_lens(
     else:
         window = float(max_radius)
     budget = use_tiles(tiles, p.photo)
+    scout = chosen = None
     if budget is not None:
         _stage(verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
-    scout = None if budget is None else scout_problem(p)  # for both choices of tiles
-    chosen = None if budget is None else choose_tiles(p, forward, rows0, window, budget, scout)
+        scout = scout_problem(p)  # for both choices of tiles
+        chosen = choose_tiles(p, forward, rows0, window, budget, scout)
     whole = p
     if chosen is not None:
         p, band = tiled_problem(p, chosen), 0  # each tile's halo is its border band

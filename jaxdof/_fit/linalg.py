@@ -93,8 +93,7 @@ def _jacobi_svd_square(r: Float[Array, "n n"]) -> tuple[Array, Array, Array]:
     order = jnp.argsort(-s)
     s, w, v = s[order], w[:, order], v[:, order]
     u = w / jnp.where(s > 0, s, 1)[None, :]
-    # A zero singular value leaves a zero column: complete it with a unit vector (not used by
-    # the callers, which mask by rank, but `u` should have unit columns where it can).
+    # A zero singular value leaves a zero column of `u` (callers mask by rank, so it is unused).
     return u, s, v.T
 
 
