@@ -269,6 +269,9 @@ def main(argv=None) -> None:
         "--quick", action="store_true", help="1.5 MP only: default, two budgets, whole frame"
     )
     parser.add_argument("--sizes", nargs="+", default=list(SIZES), choices=list(SIZES))
+    parser.add_argument(
+        "--defaults-only", action="store_true", help="only the default fit (tiles=auto) per size"
+    )
     parser.add_argument("--tag", default="")
     parser.add_argument(
         "--report-only", action="store_true", help="rewrite the table and plot from the raw file"
@@ -280,7 +283,7 @@ def main(argv=None) -> None:
         report(
             raw["rows"],
             raw["info"],
-            raw.get("command", command("fits/fullres.py", argv)),
+            raw.get("command", command("fullres.py", argv)),
             base.with_suffix(".md"),
         )
         plot(raw["rows"], base.with_suffix(".png"))
@@ -290,10 +293,11 @@ def main(argv=None) -> None:
     sizes = ["1.5"] if args.quick else args.sizes
     budgets = [1 << 16, 1 << 18] if args.quick else BUDGETS
     plan = [(size, "auto") for size in sizes]
-    plan += [("1.5", str(b)) for b in budgets if "1.5" in sizes]
-    plan += [("6", str(b)) for b in BUDGETS_6MP if "6" in sizes and not args.quick]
-    # the whole-frame fits last: the longest (6 MP: many minutes on 2 cores)
-    plan += [(size, "off") for size in sizes if size != "24"]
+    if not args.defaults_only:
+        plan += [("1.5", str(b)) for b in budgets if "1.5" in sizes]
+        plan += [("6", str(b)) for b in BUDGETS_6MP if "6" in sizes and not args.quick]
+        # the whole-frame fits last: the longest (6 MP: many minutes on 2 cores)
+        plan += [(size, "off") for size in sizes if size != "24"]
     rows = []
     for size, tiles in plan:
         sc = make_scene(size)
@@ -301,9 +305,9 @@ def main(argv=None) -> None:
         print(json.dumps(row), flush=True)
         rows.append(row)
         # written after every fit: a long whole-frame fit cut short keeps the rows before it
-        raw = dict(rows=rows, info=info, command=command("fits/fullres.py", argv))
+        raw = dict(rows=rows, info=info, command=command("fullres.py", argv))
         save_json(base.with_name(base.name + "_raw.json"), raw)
-        report(rows, info, command("fits/fullres.py", argv), base.with_suffix(".md"))
+        report(rows, info, command("fullres.py", argv), base.with_suffix(".md"))
     plot(rows, base.with_suffix(".png"))
 
 

@@ -68,7 +68,7 @@ def test_choice_follows_information_and_avoids_depth_edges():
     rows = np.asarray(p.b)[None]
     # Candidates: rows 4, 36, 68 x columns 4, 36, 68 (32 px, halo 4); of these (4, 68) and
     # (36, 68) lie wholly in the weighted half and clear of the step.
-    chosen = T.choose_tiles(p, model, rows, 4.0, 2 * 32 * 32)
+    chosen = T.choose_tiles(p, model, 4.0, 2 * 32 * 32, lambda: T.pixel_information(p, model, rows))
     assert chosen is not None and len(chosen.corners) == 2
     for r, c in chosen.corners:
         assert c >= S // 2  # where the weights are
@@ -88,13 +88,18 @@ class _Stages:
         self.seen.append(text)
 
 
-def test_fit_on_tiles_recovers_the_lens():
+def _fit_on_tiles(pyramid):
     image, depth, rng = scene()
     photo = np.asarray(jaxdof.render(image, depth, TRUTH)) + 0.003 * rng.standard_normal((S, S))
     init = jaxdof.ThinLens(F, 3.0, 1.6, PITCH)
     stages = _Stages()
-    res = jaxdof.fit_lens(image, depth, photo, init, tiles=4 * 32 * 32, verbose=stages)
+    res = jaxdof.fit_lens(
+        image, depth, photo, init, tiles=4 * 32 * 32, verbose=stages, pyramid=pyramid
+    )
     assert stages.seen[0] == f"choosing tiles: {4 * 32 * 32} of {S * S} photo pixels"
+    # With a scout (pyramid=2: the photo halved) the starts are solved there and the tiles
+    # chosen at its solution; without (this photo is small enough) at the init.
+    assert res.levels == (2 if pyramid == 2 else 1)
     assert res.status in (jaxdof.RESULTS.successful, jaxdof.RESULTS.inconsistent), res.message
     # Tiles of at least 32 px and twice the final window's reach (refitted with a larger window
     # when the first one turns out too small), within the budget, inside the frame.
@@ -107,6 +112,26 @@ def test_fit_on_tiles_recovers_the_lens():
     for name in ("f_number", "focus_distance"):
         err = abs(float(getattr(res.lens, name)) - float(getattr(TRUTH, name)))
         assert err <= 3 * float(res.stderr[name]), (name, err, float(res.stderr[name]))
+
+
+def test_fit_on_tiles_with_a_scout_recovers_the_lens():
+    _fit_on_tiles(pyramid=2)
+
+
+def test_fit_on_tiles_chosen_at_the_init_recovers_the_lens():
+    _fit_on_tiles(pyramid=None)
+
+
+def test_scout_factor():
+    """The scout's reduction: the least that brings the longer side to `SCOUT_SIDE`, unless the
+    starts' circles (>= 1 px) or the shorter side (>= 24 px) stop it earlier; `pyramid` sets it."""
+    assert T.scout_factor((1000, 1500), 24.0, None) == 4  # 250 x 375
+    assert T.scout_factor((4000, 6000), 40.0, None) == 16  # 250 x 375
+    assert T.scout_factor((4000, 6000), 3.0, None) == 2  # circles of 1.5 px at q = 2
+    assert T.scout_factor((4000, 6000), 1.5, None) == 1
+    assert T.scout_factor((400, 500), 24.0, None) == 1  # small enough already
+    assert T.scout_factor((40, 6000), 40.0, None) == 1  # the shorter side stops it
+    assert T.scout_factor((4000, 6000), 40.0, 3) == 4
 
 
 def test_tiles_option():

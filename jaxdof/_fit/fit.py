@@ -48,7 +48,17 @@ from .strategies import (
     start_lenses,
     window_for,
 )
-from .tiles import Tiles, choose_tiles, scout_problem, tiled_problem, use_tiles
+from .tiles import (
+    Tiles,
+    choose_tiles,
+    fits_tiles,
+    jacobian_information,
+    pixel_information,
+    scout_factor,
+    scout_problem,
+    tiled_problem,
+    use_tiles,
+)
 from .verbose import _with_verbose
 
 
@@ -93,7 +103,7 @@ class _Run:
     max_radius: float | None  # the user's window; None: automatic
     levels: int
     border: int | None  # the user's band (photo pixels); None: the window's (automatic)
-    tiled: bool = False  # fitted on tiles of the photo (`_fine_window`)
+    init_last: bool = False  # the last start is the raw init, outside the window's reach
 
     def residual(self, window: float) -> _Model:
         """The residual function with a given filter window."""
@@ -274,36 +284,111 @@ def _stage(verbose, text: str) -> None:
         stage(text)
 
 
-def _fine_window(run: _Run, rows: np.ndarray) -> float:
-    """The full-resolution window after coarse levels: the reach of the starts' circles. On tiles
-    the init, which `_coarse_to_fine` appends as the last start, does not widen it: its circles
-    (often the largest, from a start far off) would set the cost of every step of a large photo
-    (24 MP, f/5.6 at 2 m for an f/8 truth: a 32 px window for 13 px circles). Its render is then
-    clamped to the window; should it win with circles beyond it, `_full_resolution` refits with
-    a larger one. (Whole-frame fits keep the init's reach, as validated by the studies.)"""
+def _fine_window(run: _Run, rows: np.ndarray, depth: np.ndarray | None = None) -> float:
+    """The full-resolution window after coarse levels: the reach of the starts' circles over
+    `depth` (default: the problem's). On tiles the raw init, when `_on_tiles` appends it as the
+    last start (`run.init_last`), does not widen it: its circles (often the largest, from a
+    start far off) would set the cost of every step of a large photo (24 MP, f/5.6 at 2 m for an
+    f/8 truth: a 32 px window for 13 px circles). Its render is then clamped to the window;
+    should it win with circles beyond it, `_full_resolution` refits with a larger one.
+    (Whole-frame fits keep the init's reach, as validated by the studies.)"""
     p = run.problem
-    starts = rows[:-1] if run.tiled else rows
-    return window_for(run.forward.max_circle(starts, p.d), float(max(p.photo)))
+    starts = rows[:-1] if run.init_last else rows
+    depth = p.d if depth is None else depth
+    return window_for(run.forward.max_circle(starts, depth), float(max(p.photo)))
 
 
-def _retile(run: _Run, whole: Problem, chosen: Tiles, rows: np.ndarray, budget: int, scout):
-    """The full-resolution tiles, chosen again at the coarse levels' best solution, with halos
-    of the full-resolution window: `(run, tiles)` on the new mosaic (the first tiles where the
-    photo has too few candidates for the new ones).
+# A start whose scout solution lies within this share of the best one's fields (relative) is in
+# the best one's basin: its raw init is not solved again at full resolution (`_init_elsewhere`).
+_SAME_BASIN = 0.05
 
-    The first tiles were chosen at the `init` lens, whose circles may be far from the photo's,
-    and with halos of every start's reach (starts spread in f-number and diopters make large
-    circles); the coarse levels, where pixels are cheap, run on them. The full-resolution solve
-    renders its tiles at the coarse solution's window (`_fine_window`), and the information
-    that chooses them is the information at that lens. On the 1.5 MP scene of `fits/fullres.py`
-    (init f/5.6 at 2 m, truth f/2.8 at 3 m) the halos shrink from 24 to 12 px (a level-0 step
-    0.5 s against 0.9 s)."""
-    if run.levels == 1 or run.max_radius is not None:
-        return run, chosen
-    new = choose_tiles(whole, run.forward, rows[:1], _fine_window(run, rows), budget, scout)
-    if new is None:
-        return run, chosen
-    return dataclasses.replace(run, problem=tiled_problem(whole, new)), new
+
+def _init_elsewhere(info, p: Problem, layout) -> bool:
+    """Whether the scout solve left the init (start 0) outside the basin of its best solution
+    (not converged, or a lens more than `_SAME_BASIN` away in some field), so that the raw init
+    is worth a full-resolution solve of its own. `_coarse_to_fine` refines it at full resolution
+    always (a coarse level's model error once sent every start to a wrong basin on a 48 x 48
+    level); on a scout of a large photo whose init solution joins the best, that start only
+    wanders: on the 1.5 MP scene of `fits/fullres.py` it went off to f/194 at full resolution,
+    tripling the solve's steps (lockstep) and its cost per step. When the best did not converge,
+    every start, the init's included, goes on anyway (`_next_starts`)."""
+    best = int(info["best"])
+    if not bool(info["converged"][best]):
+        return False
+    used = list(p.spec.used)
+    theta = np.asarray(info["theta"], np.float64)[:, used]
+    floor = np.asarray(theta_floor(layout, p.spec.exposure), np.float64)[used]
+    size = np.maximum(np.abs(theta[best]), floor)
+    return not bool(info["converged"][0]) or distinct(
+        theta[0], theta[best], floor, slack=_SAME_BASIN * size
+    )
+
+
+def _on_tiles(run: _Run, rows0: np.ndarray, window: float, budget: int, levels: int | None):
+    """A fit on tiles up to its full-resolution solve: `(run, y0s, rows, tiles)`, `run` on the
+    mosaic of the tiles (levels 2 with a scout solve, else 1), the starts of the
+    full-resolution solve and their lens rows.
+
+    The starts are solved on a scout, the whole photo box-averaged by `q` (`scout_factor`), the
+    coarse level of a two-level pyramid; the information that chooses the tiles is that of the
+    scout solve's best solution (its Jacobian, which the solve returns anyway), and their halos
+    hold the reach of the full-resolution window (`_fine_window`). So the tiles are chosen at a
+    lens near the photo's, not at the init, whose circles may be far off; and a fit compiles
+    three stages (scout, full resolution, statistics). With one start, or no room to reduce the
+    photo (`q = 1`), the tiles are chosen at the init (a `restate` on a reduced copy) and every
+    start is solved at full resolution on them."""
+    p, forward = run.problem, run.forward
+    _stage(run.verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
+    one = len(rows0) == 1
+    q = 1 if one else scout_factor(p.photo, forward.max_circle(rows0, p.d), levels)
+    y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.exposure)
+    if q == 1:
+        chosen = choose_tiles(
+            p, forward, window, budget, lambda: pixel_information(p, forward, rows0)
+        )
+        assert chosen is not None  # `fits_tiles` said there is room
+        run = dataclasses.replace(run, problem=tiled_problem(p, chosen), border=0, levels=1)
+        return run, y0_init, rows0, chosen
+    (im, dep, tg, sw, b), _ = scout_problem(p, q)
+    layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
+    if run.max_radius is not None:
+        win = run.max_radius / q  # the same extent in the scene
+    else:
+        rows_q = np.asarray(rows0, np.float64).copy()
+        rows_q[..., 3] = rows_q[..., 3] * q
+        win = window_for(
+            forward.max_circle(rows_q, np.asarray(dep, np.float64)), float(max(tg.shape[1:3]))
+        )
+    run = dataclasses.replace(run, levels=2)
+    level = q.bit_length() - 1
+    _, solution, info, _, _ = run.solve(
+        win, y0_init, (im, dep, tg, sw, layout), level, run.coarse_solver
+    )
+    y0s, rows = _next_starts(info, p.b, y0_init, p.spec, layout)  # at full-resolution pitch
+    if _init_elsewhere(info, p, layout):
+        # The init is refined at full resolution too (as in `_coarse_to_fine`).
+        y0s = np.concatenate([y0s, y0_init[:1]], axis=0)
+        rows = np.concatenate([rows, rows0[:1]], axis=0)
+        run = dataclasses.replace(run, init_last=True)
+    fine = window if run.max_radius is not None else _fine_window(run, rows)
+    jac = solution[5]
+
+    def information():
+        return jacobian_information(jax.device_get(jac), tg.shape, p.spec.used), q
+
+    # (The init's window had room for tiles; a larger fine window may not: then its halos.)
+    chosen = choose_tiles(p, forward, fine, budget, information) or choose_tiles(
+        p, forward, window, budget, information
+    )
+    assert chosen is not None
+    if run.max_radius is None:
+        # The halos were sized for circles over the whole scene's depths; the tiles hold fewer.
+        crops = chosen.mosaic(p.depth, p.ratio, 0, np.nan)
+        reach = _fine_window(run, rows, crops[~np.isnan(crops)])
+        halo = min(int(forward.border_band(reach)), chosen.halo)
+        chosen = dataclasses.replace(chosen, halo=halo)
+    run = dataclasses.replace(run, problem=tiled_problem(p, chosen), border=0)
+    return run, y0s, rows, chosen
 
 
 def _fields_text(names, theta) -> str:
@@ -760,37 +845,25 @@ def fit_lens(
     else:
         window = float(max_radius)
     budget = use_tiles(tiles, p.photo)
-    scout = chosen = None
-    if budget is not None:
-        _stage(verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
-        scout = scout_problem(p)  # for both choices of tiles
-        chosen = choose_tiles(p, forward, rows0, window, budget, scout)
-    whole = p
-    if chosen is not None:
-        p, band = tiled_problem(p, chosen), 0  # each tile's halo is its border band
-    if levels is None:
+    if budget is not None and not fits_tiles(p.photo, forward, window, budget):
+        budget = None  # too few candidate tiles: the whole frame
+    if levels is None and len(rows0) == 1:
         # From one start the init is refined at full resolution anyway (`_coarse_to_fine`), so
         # coarse levels would only add work: measured 0.5-0.7x the full-resolution fit's speed
         # (fits/recover.py).
-        one = len(rows0) == 1
-        levels = 1 if one else auto_levels(p.photo, forward.max_circle(rows0[:1], p.d))
+        levels = 1
     user_window = None if max_radius is None else window
-    run = _Run(
-        p,
-        forward,
-        solver,
-        coarse_solver,
-        verbose,
-        max_steps,
-        user_window,
-        levels,
-        band,
-        tiled=chosen is not None,
-    )
+    run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, 1, band)
+    chosen = None
     try:
-        y0s, rows = _coarse_to_fine(run, rows0, window)
-        if chosen is not None and budget is not None:
-            run, chosen = _retile(run, whole, chosen, rows, budget, scout)
+        if budget is None:
+            if levels is None:
+                levels = auto_levels(p.photo, forward.max_circle(rows0[:1], p.d))
+            run = dataclasses.replace(run, levels=levels)
+            y0s, rows = _coarse_to_fine(run, rows0, window)
+        else:
+            run, y0s, rows, chosen = _on_tiles(run, rows0, window, budget, levels)
+            p = run.problem
         model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
             run, y0s, rows, window
         )

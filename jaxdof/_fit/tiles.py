@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import numpy as np
 
@@ -57,7 +58,7 @@ from .layout import pack
 from .prepare import Problem
 from .residual import _Model
 from .solve import restate, run_stage
-from .strategies import _downsample, window_for
+from .strategies import _downsample, auto_levels, window_for
 
 
 #: Photos with more pixels than this are fitted on tiles by default (`tiles="auto"`).
@@ -142,14 +143,44 @@ def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
     return int(tiles)
 
 
-def scout_problem(p: Problem):
-    """The problem box-averaged to at most `SCOUT_SIDE` px: its arrays and the factor `q`."""
+def scout_problem(p: Problem, q: int | None = None):
+    """The problem box-averaged by `q` (a power of two; default: until the longer side is at most
+    `SCOUT_SIDE` px): its arrays and the factor `q`."""
     level = (p.image, p.depth, p.targets, p.sqrt_w, p.b)
-    q = 1
-    while max(level[2].shape[1:3]) > SCOUT_SIDE:
+    k = 1
+    while (k < q) if q is not None else (max(level[2].shape[1:3]) > SCOUT_SIDE):
         level = _downsample(*level, p.ratio)
-        q *= 2
-    return level, q
+        k *= 2
+    return level, k
+
+
+def scout_factor(photo: tuple[int, int], r_starts: float, levels: int | None) -> int:
+    """The reduction `q` (a power of two) of the scout on which a fit on tiles solves its starts:
+    `2^(L-1)` for `levels = L` (the `pyramid` option); else the least that brings the longer side
+    to at most `SCOUT_SIDE` px, with the pyramid's limits (`auto_levels`): the shorter side at
+    least 24 px and the starts' largest circle, `r_starts` (px), at least 1 px (twice the
+    half-pixel dead zone). `1`: no scout solve.
+
+    The starts' circles, not the init's alone as for a whole-frame pyramid: the starts spread
+    in f-number and focus, and a scout solve needs some of them to make circles it can see; on
+    the 1.5 MP scene of `fits/fullres.py` the init's rule gave a 500 x 750 scout with an 12 px
+    window (127 s of solve), the starts' a 250 x 375 one with 8 px (5 s)."""
+    if levels is not None:
+        return 2 ** (levels - 1)
+    q = 2 ** (auto_levels(photo, r_starts) - 1)
+    while q > 1 and max(photo) / (q // 2) <= SCOUT_SIDE:
+        q //= 2
+    return q
+
+
+def jacobian_information(jac, shape: tuple[int, ...], used) -> np.ndarray:
+    """`(h, w, P, P)`: each pixel's Fisher information about the free parameters (unit noise)
+    from the Jacobian `(n, P_all)` of the weighted residuals of targets of `shape` `(T, h, w)`
+    or `(T, h, w, C)`; `used` are the free columns."""
+    jac = np.asarray(jac, np.float64)[:, list(used)]
+    t, h, w = shape[:3]
+    jac = jac.reshape(t, h, w, -1, jac.shape[-1])  # (T, h, w, C, P)
+    return np.einsum("thwci,thwcj->hwij", jac, jac)
 
 
 def pixel_information(p: Problem, forward, rows0: np.ndarray, scout=None) -> tuple[np.ndarray, int]:
@@ -167,10 +198,7 @@ def pixel_information(p: Problem, forward, rows0: np.ndarray, scout=None) -> tup
     model = _Model(spec.n_targets, window, spec.exposure, forward, len(spec.used))
     y0 = pack(rows0[:1].astype(p.dtype), p.layout, spec.exposure)[0]
     _, _, jac, _ = run_stage("restate", restate, model, y0, (im, dep, tg, sw, layout))
-    jac = np.asarray(jac, np.float64)[:, list(spec.used)]
-    t, h, w = tg.shape[:3]
-    jac = jac.reshape(t, h, w, -1, jac.shape[-1])  # (T, h, w, C, P)
-    return np.einsum("thwci,thwcj->hwij", jac, jac), q
+    return jacobian_information(jac, tg.shape, spec.used), q
 
 
 def _box_sums(x: np.ndarray, size: int, starts_r, starts_c, dtype=None) -> np.ndarray:
@@ -183,12 +211,10 @@ def _box_sums(x: np.ndarray, size: int, starts_r, starts_c, dtype=None) -> np.nd
     return c[r1, c1] - c[r0, c1] - c[r1, c0] + c[r0, c0]
 
 
-def choose_tiles(
-    p: Problem, forward, rows0: np.ndarray, window: float, budget: int, scout=None
-) -> Tiles | None:
-    """The tiles of a fit on `budget` interior pixels (module docstring), or None when the
-    photo holds too few candidates to be worth it (fewer than twice the tiles wanted)."""
-    hh, ww = p.photo[:2]
+def _grid(photo: tuple[int, ...], forward, window: float, budget: int):
+    """The candidate tiles for halos of `window`'s reach: `(halo, side, want, rows, columns)`
+    (the corners' rows and columns), or None with fewer than twice the tiles wanted."""
+    hh, ww = photo[:2]
     halo = int(forward.border_band(window))
     # At least twice the halo, so that interiors are at least a quarter of the pixels rendered.
     side = max(SIDE, -(-2 * halo // 8) * 8)
@@ -197,7 +223,29 @@ def choose_tiles(
     starts_c = np.arange(halo, ww - halo - side + 1, side)
     if len(starts_r) * len(starts_c) < 2 * want:
         return None
-    info, q = pixel_information(p, forward, rows0, scout)
+    return halo, side, want, starts_r, starts_c
+
+
+def fits_tiles(photo: tuple[int, ...], forward, window: float, budget: int) -> bool:
+    """Whether a photo of shape `photo` holds enough candidate tiles (`choose_tiles`) for
+    `budget` pixels with halos of `window`'s reach."""
+    return _grid(photo, forward, window, budget) is not None
+
+
+def choose_tiles(
+    p: Problem, forward, window: float, budget: int, information: Callable[[], tuple]
+) -> Tiles | None:
+    """The tiles of a fit on `budget` interior pixels with halos of `window`'s reach (module
+    docstring), or None when the photo holds too few candidates to be worth it (fewer than twice
+    the tiles wanted). `information()` gives the reduced pixels' information and their factor
+    `q` (`pixel_information`, or `jacobian_information` of a scout solve); it is called only
+    when there are enough candidates."""
+    hh, ww = p.photo[:2]
+    grid = _grid(p.photo, forward, window, budget)
+    if grid is None:
+        return None
+    halo, side, want, starts_r, starts_c = grid
+    info, q = information()
     # Each candidate's information: the reduced pixels under it (side / q per axis, at least 1),
     # times q^2 (the full-resolution pixels each reduced one stands for).
     k = max(side // q, 1)
