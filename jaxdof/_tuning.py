@@ -311,6 +311,22 @@ RENDER_MEMORY = {
 CLI_MEMORY = {"process": 200 * 2**20, "per_pixel": 24.0}
 
 
+#: What `jaxdof.fit_lens` needs besides the frames it is given (`jaxdof.internal.estimate_fit_memory`,
+#: the CLI's `fit --memory`): `"fixed"` bytes (runtime, compiled stages), `"frame"` bytes per input
+#: pixel (the problem's float64 depth, the scout's reductions, the depth edges of a tile choice:
+#: work on the whole frame whether or not the fit runs on tiles) and `"fitted"` bytes per photo pixel
+#: rendered in the solve, per photo (the whole frame, or the tiles with their halos: at most 4x the
+#: tile budget).
+#:
+#: Measured for issue 22 (2026-12-02), `fits/fullres.py` (one photo, RGB, soft, windows of 8-16 px,
+#: peak `ru_maxrss` of `jaxdof fit` in a fresh process, minus what the CLI holds after reading,
+#: `CLI_MEMORY` plus 12 bytes per photo pixel): whole frame 1.5 MP 1.24 GiB, 6 MP 3.81 GiB (the
+#: slope: 538 bytes per fitted pixel, intercept 0.38 GiB); on tiles of 2^17 pixels 1.5 / 6 / 24 MP
+#: 0.59 / 0.63 / 1.89 GiB (the slope between 6 and 24 MP: 75 bytes per input pixel). Rounded up:
+#: the measured peaks are 0.66-1.0 of the estimate.
+FIT_MEMORY = {"fixed": 0.4 * 2**30, "frame": 75.0, "fitted": 540.0}
+
+
 _NAMES = (
     "SPANS_MIN_RADIUS",
     "JITTER_SPANS_MIN_RADIUS",
@@ -327,6 +343,7 @@ _NAMES = (
     "TABLE_LEVELS_PER_PIXEL",
     "RENDER_MEMORY",
     "CLI_MEMORY",
+    "FIT_MEMORY",
 )
 
 

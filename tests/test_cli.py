@@ -580,6 +580,9 @@ BAD = [  # (argv, text the one line must contain)
     ([*F, "--weight", "missing.png"], "missing.png: no such file (--weight)"),
     ([*F, "--border", "-1"], "argument --border: bad border '-1'"),
     ([*F, "--border", "wide"], "argument --border: bad border 'wide'"),
+    # a fit estimated to need more than --memory stops before it starts (jaxdof/_tuning.py's
+    # FIT_MEMORY: 0.4 GiB fixed); a 24 x 32 photo has no tile budget that would fit
+    ([*F, "--memory", "100MB"], "needs about 411MB, over the 100MB --memory: give a smaller image"),
     (["demo", "--out", "demo.jpg"], "--out demo.jpg"),
     (["render"], "the following arguments are required"),
     (["unknown"], "invalid choice: 'unknown'"),

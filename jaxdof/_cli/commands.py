@@ -26,7 +26,7 @@ import jaxdof
 from .. import _tuning
 from .._allocator import _glibc, retain_freed_memory
 from .._exif import ExifLens, read_exif
-from .._fit.tiles import use_tiles
+from .._fit.tiles import estimate_fit_memory, use_tiles
 from .._io import (
     _FORMATS,
     InputError,
@@ -496,9 +496,49 @@ def fit_call(args, display: Display | None = None) -> FitCall:
     return FitCall(img.array, depth, targets, init, kwargs, model, exif)
 
 
+def _available_memory() -> int | None:
+    """Bytes the machine can still give (Linux's `MemAvailable`), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None
+
+
+def check_fit_memory(args, call: FitCall) -> None:
+    """Stop, before it starts, a fit estimated (`jaxdof.internal.estimate_fit_memory`) to need
+    more than `--memory` (default: what the machine has available once the files are read):
+    `InputError` with the tile budget that would fit, or a smaller image where none would."""
+    photo = call.targets[0].shape
+    budget = use_tiles(args.tiles, photo)
+    t = len(call.targets)
+    need = estimate_fit_memory(call.image.shape, photo, t, budget)
+    room = _available_memory() if args.memory is None else args.memory
+    if room is None or need <= room:
+        return
+    table = _tuning.FIT_MEMORY
+    frame = table["fixed"] + table["frame"] * call.image.shape[0] * call.image.shape[1]
+    fits = int((room - frame) / (4 * table["fitted"] * t)) // 1024 * 1024  # a tile budget
+    what = "the whole frame" if budget is None else f"on tiles of {budget} pixels"
+    limit = "--memory" if args.memory is not None else "available"
+    hint = (
+        f"give --tiles {fits} or less"
+        if fits >= 2 * 32 * 32
+        else "give a smaller image (a crop, or resized files)"
+    )
+    raise InputError(
+        f"a fit {what} of this {photo[0]}x{photo[1]} photo needs about {_size(need)}, over the "
+        f"{_size(room)} {limit}: {hint}"
+    )
+
+
 def run_fit(args) -> int:
     with Display.for_stderr(args.quiet) as display:
         call = fit_call(args, display)
+        check_fit_memory(args, call)
         if use_tiles(args.tiles, call.targets[0].shape) is None:
             # Kept freed memory (`jaxdof.retain_freed_memory`) speeds up a whole-frame fit. A fit
             # on tiles frees its full-size frames early, and keeping them raises the peak: 24 MP,

@@ -413,6 +413,15 @@ def _add_fit_pixels(fit) -> None:
         help="fit on informative tiles of the photo: auto (default: 2^17 pixels of tiles for "
         "photos over 2^20 pixels), off (the whole frame) or a budget of N photo pixels",
     )
+    fit.add_argument(
+        "--memory",
+        type=parse_memory,
+        default=None,
+        metavar="SIZE",
+        help="memory the fit may use besides the files as read, e.g. 8GB (default: what the "
+        "machine has available once they are read): a fit "
+        "estimated to need more stops before it starts, saying what would fit",
+    )
 
 
 def _add_fit(sub) -> None:

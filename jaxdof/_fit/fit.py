@@ -769,15 +769,17 @@ def fit_lens(
       `FitResult.border` is the band used (px), `FitResult.pixels_used` the pixels fitted.
     - `tiles`: fit a large photo on informative tiles instead of the whole frame. `"auto"`
       (default): photos of more than 2^20 pixels are fitted on square tiles (32 px, or twice
-      the window's reach where that is more) holding 2^17 pixels in all (per photo), chosen greedily for the most information about the free
-      parameters at the `init` lens (D-optimal, from the Jacobian on a reduced copy), away from
-      depth edges unless the model renders occlusion, and chosen again at the coarse pyramid
-      levels' solution for the full-resolution solve; an int: that budget of pixels (at any
-      photo size); `None` or `False`: the whole frame. Each tile keeps a halo of the window's
-      reach with weight 0 (the border rule, per tile), so its pixels' residuals are exactly the
+      the window's reach where that is more) holding 2^17 pixels in all (per photo). The
+      starts are solved on a scout (the photo reduced to about 512 px; `pyramid=L` reduces it
+      `2^(L-1)` times, `pyramid=1` skips it), the tiles chosen greedily for the most
+      information about the free parameters at the scout's solution (D-optimal, from its
+      Jacobian), away from depth edges unless the model renders occlusion, and the
+      full-resolution solve starts from there; an int: that budget of pixels (at any photo
+      size); `None` or `False`: the whole frame. Each tile keeps a halo of the window's reach
+      with weight 0 (the border rule, per tile), so its pixels' residuals are exactly the
       whole-frame fit's; the standard errors are those of the pixels used. `FitResult.tiles`
-      lists the tiles (`(row, column, height, width)`, photo pixels); `jaxdof/_fit/tiles.py`
-      has the method.
+      lists the tiles (`(row, column, height, width)`, photo pixels), `FitResult.levels` is 2
+      with a scout; `jaxdof/_fit/tiles.py` has the method.
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `status` (a
     `jaxdof.RESULTS` member) and `message`, when the best start did not converge, when distinct

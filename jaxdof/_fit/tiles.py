@@ -30,13 +30,17 @@ with the parameters), and the cost of a fit grows with the pixels rendered. For 
    mosaic: its pyramid, starts, window policy, statistics and adequacy test (whose tiles then
    cover groups of photo tiles: independent parts of the photo).
 
-4. **Twice.** The tiles are chosen first at the `init` lens, with halos of every start's reach,
-   for the coarse pyramid levels; then again at the coarse levels' best solution, with halos of
-   the full-resolution window, for the full-resolution solve (`fit._retile`). The information
-   at a lens near the photo's chooses better tiles than at a start far off: on the 1.5 MP scene
-   of `fits/fullres.py` (init f/5.6 at 2 m, truth f/2.8 at 3 m), 2^17 pixels of tiles chosen at
-   the init gave standard errors 4.8x (N) and 3.3x (d_f) the whole frame's, chosen again
-   2.4x and 2.8x.
+4. **At a lens near the photo's.** The starts are first solved on a scout, the whole photo
+   box-averaged until its longer side is at most `SCOUT_SIDE` px (`scout_factor`); the tiles are
+   chosen from the information at the scout's best solution (its Jacobian, which that solve
+   returns), with halos of the full-resolution window's reach over the chosen tiles' depths, and
+   the full-resolution solve starts from the scout's solution (`fit._on_tiles`). Information at
+   a lens near the photo's chooses better tiles than at a start far off: on the 1.5 MP scene of
+   `fits/fullres.py` (init f/5.6 at 2 m, truth f/2.8 at 3 m), 2^17 pixels of tiles chosen at the
+   init gave standard errors 4.8x (N) and 3.3x (d_f) the whole frame's, chosen at a coarse
+   solution 2.4x and 2.8x. A fit compiles three stages (scout, full resolution, statistics): that
+   fit took 15 s in a fresh `jaxdof fit`, against 30 s with a pyramid on tiles chosen twice.
+   With one start, or a photo that needs no reduction, the tiles are chosen at the `init`.
 
 The standard errors are those of the pixels used; `FitResult.tiles` lists the tiles
 `(row, column, height, width)` of their interiors in photo pixels.
@@ -53,6 +57,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .. import _tuning
 from .._corrections import depth_edges
 from .layout import pack
 from .prepare import Problem
@@ -141,6 +146,20 @@ def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
             f"tiles must be 'auto', None/False or a positive pixel budget, got {tiles!r}"
         )
     return int(tiles)
+
+
+def estimate_fit_memory(
+    image_shape: tuple[int, ...], photo_shape: tuple[int, ...], targets: int, budget: int | None
+) -> int:
+    """Bytes `fit_lens` needs besides its inputs, from measured bytes per pixel
+    (`jaxdof.internal.tuning.FIT_MEMORY`, with its provenance): `fixed + frame n + fitted m T`,
+    `n` the image's pixels, `T` photos of `m` pixels rendered each: the photo's, or on tiles
+    (`budget` pixels, `use_tiles`) at most `4 budget` (every tile at least twice its halo: its
+    crop at most twice its side). For planning: measured peaks were 0.66-1.0 of it."""
+    table = _tuning.FIT_MEMORY
+    n = int(image_shape[0]) * int(image_shape[1])
+    m = int(photo_shape[0]) * int(photo_shape[1]) if budget is None else 4 * int(budget)
+    return int(table["fixed"] + table["frame"] * n + table["fitted"] * m * int(targets))
 
 
 def scout_problem(p: Problem, q: int | None = None):

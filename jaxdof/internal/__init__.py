@@ -79,6 +79,7 @@ from .._fit.adequacy import (  # noqa: F401
     adequacy as adequacy,
     rounding_noise as rounding_noise,
 )
+from .._fit.tiles import estimate_fit_memory as estimate_fit_memory
 from .._io import read_image as read_image, write_image as write_image
 from .._render import estimate_memory as estimate_memory
 from ._study import footprint_radius as footprint_radius, pixel_prefilter as pixel_prefilter
