@@ -346,3 +346,18 @@ def test_moderate_vignetting_is_flagged_and_covered():
     fit, z = fit_from_truth(image, depth, target, truth)
     assert fit.status == jaxdof.RESULTS.inconsistent
     assert z <= 3
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_p_value_with_many_noise_degrees_of_freedom(dtype):
+    """A fit on a megapixel has millions of noise degrees of freedom: float32's incomplete beta
+    function loses the F survival there (it gave p = -2.9 for F = 0.97 on a 6 MP fit, and the
+    test fired); the chi-square limit takes over. Against scipy's F survival, in [0, 1]."""
+    from jaxdof._fit.adequacy import _p_value
+
+    for d2 in (1e2, 1e3, 1e5, 3e6):
+        for dof in (2.0, 222.0):
+            chi2 = 0.97 * dof
+            p = float(_p_value(*(jnp.asarray(x, dtype) for x in (chi2, dof, d2)), known=False))
+            ref = scipy.stats.f.sf(chi2 / dof, dof, d2)
+            assert 0 <= p <= 1 and abs(p - ref) < 2e-3, (d2, dof, p, ref)
