@@ -32,12 +32,13 @@ from _raytraced_report import edge_distance, psnr  # noqa: E402
 from _raytraced_scenes import DEFAULT_LENSES, HELD_OUT, default_inputs, true_lens  # noqa: E402
 
 import jaxdof  # noqa: E402
+from jaxdof.internal import LocalOcclusion  # noqa: E402
 
 
 METHODS = {
     "soft": jaxdof.Soft(),
     "occlusion": jaxdof.Occlusion(),
-    "local": jaxdof.LocalOcclusion(),
+    "local": LocalOcclusion(),
 }
 SCENES = ("planes", "occluders", "ground")
 

@@ -1,20 +1,22 @@
-"""`jaxdof.LocalOcclusion`: occlusion decided per pair of pixels. Exactly the soft filter where no
+"""`jaxdof.internal.LocalOcclusion` (experimental): occlusion decided per pair of pixels. Exactly the soft filter where no
 source leaves its receiver's surface (planes, even receding ones), a sharp foreground keeps its
 edge in front of a blurred background, a blurred foreground is semi-transparent over a sharp
-background. (Gradients: the catalogue's checks in tests/test_gradients.py.)"""
+background; gradients in image, depth and every lens field (float64 `check_grads`)."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.test_util import check_grads
 
 import jaxdof
-from jaxdof._filters import as_method
+from jaxdof.internal import LocalOcclusion
 
 
 H, W, MAXR = 24, 28, 6.0
 RNG = np.random.default_rng(3)
 IMAGE = RNG.uniform(0.2, 0.9, (H, W, 3)).astype(np.float32)
-LOCAL = jaxdof.LocalOcclusion()
+LOCAL = LocalOcclusion()
 
 
 def _filter(method, image, radius, depth):
@@ -78,14 +80,31 @@ def test_blurred_foreground_is_semi_transparent():
     np.testing.assert_allclose(soft[right], 1.0, atol=1e-6)
 
 
-def test_options_and_alias():
-    assert isinstance(as_method("local_occlusion"), jaxdof.LocalOcclusion)
-    assert jaxdof.LocalOcclusion(jump=0.1).jump == 0.1
+def test_options():
+    assert LocalOcclusion(jump=0.1).jump == 0.1
     for bad in (0.0, -0.1, 2.0):
         with pytest.raises(ValueError, match="jump must be"):
-            jaxdof.LocalOcclusion(jump=bad)
+            LocalOcclusion(jump=bad)
     # without a depth map there is no order to decide: the soft filter
     radius = RNG.uniform(0.0, MAXR, (H, W)).astype(np.float32)
     a = jaxdof.coc_filter(IMAGE, radius, method=LOCAL, max_radius=MAXR)
     b = jaxdof.coc_filter(IMAGE, radius, method="soft", max_radius=MAXR)
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_gradients_every_input():
+    """Image, depth (a step, a slope, a row at infinity) and every lens field, forward and
+    reverse, float64, through `jaxdof.render`; radii away from 1/2 and the window."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(size=(5, 6, 2))
+    depth = np.where(np.arange(6)[None, :] < 3, 1.6, 5.0) + 0.05 * rng.uniform(size=(5, 6))
+    inf_row = np.zeros((5, 6), bool)
+    inf_row[0] = True
+
+    def f(image, depth, f_, n, d_f):
+        z = jnp.where(inf_row, jnp.inf, depth)
+        lens = jaxdof.ThinLens(f_, n, d_f, 2e-5)
+        return jaxdof.render(image, z, lens, method=LOCAL, max_radius=7.0)
+
+    args = (image, depth, 0.05, 4.0, 3.0)  # circles 2.1-5.3 px
+    check_grads(f, args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=2e-7, rtol=2e-5)

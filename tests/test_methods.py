@@ -20,7 +20,6 @@ from jaxdof import (
     Hard,
     Jitter,
     Layered,
-    LocalOcclusion,
     Occlusion,
     Soft,
     Supersample,
@@ -70,7 +69,7 @@ def _err(a, b):
 
 # --- methods are objects; strings are aliases of the default objects ---------------------------
 
-BUILT_IN = (Soft, Hard, Supersample, Jitter, Aperture, Layered, Occlusion, LocalOcclusion, Auto)
+BUILT_IN = (Soft, Hard, Supersample, Jitter, Aperture, Layered, Occlusion, Auto)
 
 
 def test_aliases_are_the_catalogue():
@@ -84,7 +83,7 @@ def test_every_method_is_an_equinox_module(cls):
     can drive a fit (a bool class variable)."""
     assert issubclass(cls, AbstractMethod) and issubclass(cls, eqx.Module)
     assert isinstance(cls.differentiable_in_radius, bool) and isinstance(cls.uses_depth, bool)
-    assert cls.uses_depth == (cls in (Occlusion, LocalOcclusion))
+    assert cls.uses_depth == (cls is Occlusion)
 
 
 @pytest.mark.parametrize("name", [n for n in METHOD_ALIASES if n != "jitter"])

@@ -8,10 +8,12 @@ source `s = p - o` is sorted, relative to the receiver `p`, into *in front of* `
 (`F`), *on* it (`S`) or *behind* it (`B`), and the three are composited back to front with
 `over`:
 
-$$\mathrm{out}_p = F_p + (1 - \min(1, \alpha^F_p)) \bigl(S_p + (1 - \min(1, \alpha^S_p))\,
-  B_p\bigr), \qquad X_p = \sum_{s \in X} w_s I_s, \quad \alpha^X_p = \sum_{s \in X} w_s,$$
+$$\mathrm{out}_p = F_p + t(\alpha^F_p) \bigl(S_p + t(\alpha^S_p)\, B_p\bigr), \qquad
+  X_p = \sum_{s \in X} w_s I_s, \quad \alpha^X_p = \sum_{s \in X} w_s,$$
 
-with `w_s = w(o, r_s)` the soft filter's exact circle-pixel weight (`soft.tap_weight`). So a sharp foreground keeps its
+with the transmittance `t(alpha) = max(1 - alpha, 0)` (smoothed to C1 within 0.05 below 1), and
+
+`w_s = w(o, r_s)` the soft filter's exact circle-pixel weight (`soft.tap_weight`). So a sharp foreground keeps its
 edge in front of a blurred background (its own coverage at `p` is 1: the background light there is
 blocked), and a blurred foreground is semi-transparent over a sharp background (where it covers
 half of `p`, half of the background's light passes). Where every source lies on its receiver's
@@ -24,8 +26,11 @@ inverse depth `u_s = 1/z_s` is compared with what the receiver's own surface wou
 source's pixel, extrapolated along its inverse-depth gradient (inverse depth is affine in image
 coordinates on any plane seen in perspective, so a plane predicts itself exactly):
 
-$$\hat u_s = u_p - \nabla u_p \cdot o, \qquad
-  \beta_s = \mathrm{smoothstep}\Bigl(\frac{\log(\hat u_s / u_s) - \tau}{\tau}\Bigr),$$
+$$\hat u_s = u_p - \nabla u_p \cdot o, \qquad g_s = \frac{2 (\hat u_s - u_s)}{|\hat u_s| + u_s +
+  10^{-3} \max u}, \qquad \beta_s = \mathrm{smoothstep}\Bigl(\frac{g_s - \tau}{\tau}\Bigr),$$
+
+`g_s` the relative gap (about `log(u_hat / u_s)` when small; the floor keeps it continuous where
+both approach focus at infinity, `u = 0`),
 
 `beta_s = 0` while the source is less than `tau` (relative, `jump`, default 3 %, as
 `jaxdof.depth_edges`) behind that prediction, 1 beyond `2 tau`, and smooth between: the source's
@@ -91,6 +96,21 @@ def _surface_gradient(u):
     return along(u, 0), along(u, 1)
 
 
+# The transmittance `1 - alpha` meets 0 at full coverage in a cubic over `alpha` in
+# `[1 - 2 _KNEE, 1]` (value and slope continuous at both ends, 0 with slope 0 at 1): C1, so that
+# forward and reverse derivatives agree where a coverage sums to 1 up to rounding (the kink of
+# `max(1 - alpha, 0)` there let the rematerialised reverse pass take the other branch: 3e-4
+# apart in `check_grads`), and still exactly 0 where a surface covers the pixel wholly.
+_KNEE = 0.025
+
+
+def _transmittance(alpha):
+    """`max(1 - alpha, 0)`, smoothed within `2 _KNEE` below full coverage."""
+    x = jnp.clip(1 - alpha, 0, 2 * _KNEE)
+    cubic = x * x / _KNEE - x * x * x / (4 * _KNEE * _KNEE)
+    return jnp.where(alpha <= 1 - 2 * _KNEE, 1 - alpha, cubic)
+
+
 def _smoothstep(t):
     t = jnp.clip(t, 0, 1)
     return t * t * (3 - 2 * t)
@@ -112,13 +132,15 @@ def local_occlusion_filter(
     finite = jnp.isfinite(depth)
     u = jnp.where(finite, 1 / jnp.where(finite, depth, 1), 0)  # 0 at infinity
     gy, gx = _surface_gradient(u)
-    tiny = jnp.finfo(image.dtype).tiny
+    # Inverse depths within a thousandth of the nearest's of 0 compare as at infinity: the
+    # relative gap stays continuous where both the prediction and the source approach 0.
+    floor = 1e-3 * lax.stop_gradient(jnp.max(u)) + jnp.finfo(image.dtype).tiny
     log_tol = jnp.log1p(jnp.asarray(jump, image.dtype))
     p_img, p_rad, p_u = (pad_rows_cols(x, pad) for x in (image, radius, u))
     zero = jnp.zeros((), jnp.int32)
 
     def body(k, acc, mirrors, geom):
-        wgt = tap_weight(*geom, p_rad)  # the soft weight of this class, on the source grid
+        wgt = jnp.asarray(tap_weight(*geom, p_rad))  # the soft weight of this class, source grid
         lit = p_img * wgt[..., None]
         parts = []
         for j in range(k):
@@ -128,7 +150,7 @@ def local_occlusion_filter(
             l_s = lax.dynamic_slice(lit, (*at, zero), (h, w, c))
             u_s = lax.dynamic_slice(p_u, at, (h, w))
             u_hat = u - gy * oy.astype(u.dtype) - gx * ox.astype(u.dtype)
-            gap = jnp.log(jnp.maximum(u_hat, tiny)) - jnp.log(jnp.maximum(u_s, tiny))
+            gap = 2 * (u_hat - u_s) / (jnp.abs(u_hat) + u_s + floor)
             back = _smoothstep((gap - log_tol) / log_tol)
             front = _smoothstep((-gap - log_tol) / log_tol)
             same = 1 - back - front
@@ -151,8 +173,8 @@ def local_occlusion_filter(
     same, a_same, front, a_front, behind = _scan_classes(offsets, image.dtype, init, body)
     # Back to front: what lies behind the receiver's surface, under the surface, under what lies
     # in front of it; each layer lets through what its coverage leaves open.
-    out = same + (1 - jnp.minimum(a_same, 1))[..., None] * behind
-    return front + (1 - jnp.minimum(a_front, 1))[..., None] * out
+    out = same + _transmittance(a_same)[..., None] * behind
+    return front + _transmittance(a_front)[..., None] * out
 
 
 @final

@@ -31,6 +31,12 @@ What is here (re-exports only):
   `kernel_variance` (the filter kernel's variance, under `jaxdof.footprint_prefilter`), and the
   study-only candidates that lost to `footprint_prefilter` against ray tracing
   (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
+- **Experimental methods**: `LocalOcclusion`, occlusion decided per pair of pixels against the
+  receiver's extrapolated surface (no hidden-background fill); measured against ray tracing in
+  `fits/results/occlusion_local.md`, where it does not beat `jaxdof.Occlusion` (issue 21's
+  candidate, not a built-in).
+- **Memory**: `estimate_memory` (a render's), `estimate_fit_memory` (a fit's; the CLI's
+  `fit --memory`).
 - **Files**: `read_image` and `write_image`, the CLI's readers and writers (linear light;
   16-bit PNG and TIFF, sRGB encoding), for studies that make their scenes as files.
 - **Overlap**: `textbook_overlap`, the inclusion-exclusion form of the circle-pixel overlap that
@@ -53,6 +59,7 @@ from .._filters.common import (
 from .._filters.hard import hard_filter as hard_filter
 from .._filters.jitter import jitter_filter as jitter_filter
 from .._filters.layered import layered_filter as layered_filter
+from .._filters.local_occlusion import LocalOcclusion as LocalOcclusion
 from .._filters.soft import (
     gather as gather,
     soft_filter as soft_filter,
