@@ -320,11 +320,11 @@ CLI_MEMORY = {"process": 200 * 2**20, "per_pixel": 24.0}
 #:
 #: Measured for issue 22 (2026-12-02), `fits/fullres.py` (one photo, RGB, soft, windows of 8-16 px,
 #: peak `ru_maxrss` of `jaxdof fit` in a fresh process, minus what the CLI holds after reading,
-#: `CLI_MEMORY` plus 12 bytes per photo pixel): whole frame 1.5 MP 1.24 GiB, 6 MP 3.81 GiB (the
-#: slope: 538 bytes per fitted pixel, intercept 0.38 GiB); on tiles of 2^17 pixels 1.5 / 6 / 24 MP
-#: 0.59 / 0.63 / 1.89 GiB (the slope between 6 and 24 MP: 75 bytes per input pixel). Rounded up:
-#: the measured peaks are 0.66-1.0 of the estimate.
-FIT_MEMORY = {"fixed": 0.4 * 2**30, "frame": 75.0, "fitted": 540.0}
+#: `CLI_MEMORY` plus 12 bytes per photo pixel): whole frame 1.5 MP 1.24-1.27 GiB, 6 MP 3.81-4.23 GiB
+#: (two runs; the larger gives 627 bytes per fitted pixel beside the intercept); on tiles of 2^17
+#: pixels 1.5 / 6 / 24 MP 0.59-0.66 / 0.63-0.64 / 1.86-1.89 GiB (the slope between 6 and 24 MP:
+#: 75 bytes per input pixel). Rounded up: the measured peaks are 0.68-0.97 of the estimate.
+FIT_MEMORY = {"fixed": 0.4 * 2**30, "frame": 75.0, "fitted": 640.0}
 
 
 _NAMES = (

@@ -39,7 +39,7 @@ with the parameters), and the cost of a fit grows with the pixels rendered. For 
    `fits/fullres.py` (init f/5.6 at 2 m, truth f/2.8 at 3 m), 2^17 pixels of tiles chosen at the
    init gave standard errors 4.8x (N) and 3.3x (d_f) the whole frame's, chosen at a coarse
    solution 2.4x and 2.8x. A fit compiles three stages (scout, full resolution, statistics): that
-   fit took 15 s in a fresh `jaxdof fit`, against 30 s with a pyramid on tiles chosen twice.
+   fit took 15-18 s in a fresh `jaxdof fit`, against 30 s with a pyramid on tiles chosen twice.
    With one start, or a photo that needs no reduction, the tiles are chosen at the `init`.
 
 The standard errors are those of the pixels used; `FitResult.tiles` lists the tiles
@@ -155,7 +155,7 @@ def estimate_fit_memory(
     (`jaxdof.internal.tuning.FIT_MEMORY`, with its provenance): `fixed + frame n + fitted m T`,
     `n` the image's pixels, `T` photos of `m` pixels rendered each: the photo's, or on tiles
     (`budget` pixels, `use_tiles`) at most `4 budget` (every tile at least twice its halo: its
-    crop at most twice its side). For planning: measured peaks were 0.66-1.0 of it."""
+    crop at most twice its side). For planning: measured peaks were 0.68-0.97 of it."""
     table = _tuning.FIT_MEMORY
     n = int(image_shape[0]) * int(image_shape[1])
     m = int(photo_shape[0]) * int(photo_shape[1]) if budget is None else 4 * int(budget)
