@@ -202,11 +202,11 @@ def jacobian_information(jac, shape: tuple[int, ...], used) -> np.ndarray:
     return np.einsum("thwci,thwcj->hwij", jac, jac)
 
 
-def pixel_information(p: Problem, forward, rows0: np.ndarray, scout=None) -> tuple[np.ndarray, int]:
+def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarray, int]:
     """`(h, w, P, P)`: each reduced pixel's Fisher information about the free parameters (in the
-    solver's coordinates, unit noise) at the first lens of `rows0`, and the reduction factor;
-    `scout` is `scout_problem(p)` where the caller has it (24 MP: 5.5 s to make)."""
-    (im, dep, tg, sw, b), q = scout_problem(p) if scout is None else scout
+    solver's coordinates, unit noise) at the first lens of `rows0`, on `scout_problem(p)`, and
+    the reduction factor (tiles chosen at the init: `fit._on_tiles` without a scout solve)."""
+    (im, dep, tg, sw, b), q = scout_problem(p)
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
     rows = np.asarray(rows0[:1], np.float64).copy()
     rows[..., 3] = rows[..., 3] * q
