@@ -26,7 +26,7 @@ import jaxdof
 from .. import _tuning
 from .._allocator import _glibc, retain_freed_memory
 from .._exif import ExifLens, read_exif
-from .._fit.tiles import estimate_fit_memory, use_tiles
+from .._fit.tiles import SIDE, estimate_fit_memory, use_tiles
 from .._io import (
     _FORMATS,
     InputError,
@@ -521,12 +521,12 @@ def check_fit_memory(args, call: FitCall) -> None:
         return
     table = _tuning.FIT_MEMORY
     frame = table["fixed"] + table["frame"] * call.image.shape[0] * call.image.shape[1]
-    fits = int((room - frame) / (4 * table["fitted"] * t)) // 1024 * 1024  # a tile budget
+    fits = int((room - frame) / (4 * table["fitted"] * t)) // SIDE**2 * SIDE**2  # whole tiles
     what = "the whole frame" if budget is None else f"on tiles of {budget} pixels"
     limit = "--memory" if args.memory is not None else "available"
     hint = (
         f"give --tiles {fits} or less"
-        if fits >= 2 * 32 * 32
+        if fits >= 2 * SIDE**2
         else "give a smaller image (a crop, or resized files)"
     )
     raise InputError(

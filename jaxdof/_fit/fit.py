@@ -45,6 +45,7 @@ from .strategies import (
     check_border,
     distinct,
     level_band,
+    reduced_window,
     start_lenses,
     window_for,
 )
@@ -170,10 +171,7 @@ def _coarse_to_fine(run: _Run, rows0: np.ndarray, window: float):
         if run.max_radius is not None:
             win_l = window / scale  # the same extent in the scene as the full-resolution window
         else:
-            rows_l = np.asarray(rows, np.float64).copy()
-            rows_l[..., 3] = rows_l[..., 3] * scale
-            r_l = run.forward.max_circle(rows_l, np.asarray(dep_l, np.float64))
-            win_l = window_for(r_l, float(max(tg_l.shape[1:3])))
+            win_l = reduced_window(run.forward, rows, dep_l, tg_l.shape, scale)
         args_l = (im_l, dep_l, tg_l, sw_l, layout_l)
         # (A coarse level whose band would leave no pixel keeps them all; only its starts matter.)
         _, _, info_l, _, _ = run.solve(win_l, y0s, args_l, lev, run.coarse_solver)
@@ -339,8 +337,7 @@ def _on_tiles(run: _Run, rows0: np.ndarray, window: float, budget: int, levels: 
     start is solved at full resolution on them."""
     p, forward = run.problem, run.forward
     _stage(run.verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
-    one = len(rows0) == 1
-    q = 1 if one else scout_factor(p.photo, forward.max_circle(rows0, p.d), levels)
+    q = scout_factor(p.photo, forward.max_circle(rows0, p.d), levels)  # levels 1: one start
     y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.exposure)
     if q == 1:
         chosen = choose_tiles(
@@ -354,11 +351,7 @@ def _on_tiles(run: _Run, rows0: np.ndarray, window: float, budget: int, levels: 
     if run.max_radius is not None:
         win = run.max_radius / q  # the same extent in the scene
     else:
-        rows_q = np.asarray(rows0, np.float64).copy()
-        rows_q[..., 3] = rows_q[..., 3] * q
-        win = window_for(
-            forward.max_circle(rows_q, np.asarray(dep, np.float64)), float(max(tg.shape[1:3]))
-        )
+        win = reduced_window(forward, rows0, dep, tg.shape, q)
     run = dataclasses.replace(run, levels=2)
     level = q.bit_length() - 1
     _, solution, info, _, _ = run.solve(

@@ -83,6 +83,16 @@ def window_for(radius: float, cap: float) -> float:
     return float(min(w, max(cap, 2.0)))
 
 
+def reduced_window(forward, rows: np.ndarray, depth, targets_shape, scale: float | int) -> float:
+    """The window (`window_for`) of a problem reduced `scale` times (a pyramid level, a scout):
+    the reach of the lens `rows`' circles over its `depth`, the pitch `scale` times coarser, at
+    most its targets' longer side (`targets_shape` `(T, h, w, ...)`)."""
+    rows = np.asarray(rows, np.float64).copy()
+    rows[..., 3] = rows[..., 3] * scale
+    r = forward.max_circle(rows, np.asarray(depth, np.float64))
+    return window_for(r, float(max(targets_shape[1:3])))
+
+
 # --------------------------------------------------------------------------------------------
 # Coarse-to-fine.
 # --------------------------------------------------------------------------------------------

@@ -63,7 +63,7 @@ from .layout import pack
 from .prepare import Problem
 from .residual import _Model
 from .solve import restate, run_stage
-from .strategies import _downsample, auto_levels, window_for
+from .strategies import _downsample, auto_levels, reduced_window
 
 
 #: Photos with more pixels than this are fitted on tiles by default (`tiles="auto"`).
@@ -208,11 +208,7 @@ def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarra
     the reduction factor (tiles chosen at the init: `fit._on_tiles` without a scout solve)."""
     (im, dep, tg, sw, b), q = scout_problem(p)
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
-    rows = np.asarray(rows0[:1], np.float64).copy()
-    rows[..., 3] = rows[..., 3] * q
-    window = window_for(
-        forward.max_circle(rows, np.asarray(dep, np.float64)), float(max(tg.shape[1:3]))
-    )
+    window = reduced_window(forward, rows0[:1], dep, tg.shape, q)
     spec = p.spec
     model = _Model(spec.n_targets, window, spec.exposure, forward, len(spec.used))
     y0 = pack(rows0[:1].astype(p.dtype), p.layout, spec.exposure)[0]
@@ -259,7 +255,6 @@ def choose_tiles(
     the tiles wanted). `information()` gives the reduced pixels' information and their factor
     `q` (`pixel_information`, or `jacobian_information` of a scout solve); it is called only
     when there are enough candidates."""
-    hh, ww = p.photo[:2]
     grid = _grid(p.photo, forward, window, budget)
     if grid is None:
         return None
@@ -287,7 +282,7 @@ def choose_tiles(
     keep = usable.reshape(-1)
     chosen = _greedy_d_optimal(mats, keep, want)
     picked = sorted(corners[i] for i in chosen)
-    return Tiles(tuple(picked), side, halo, (hh, ww))
+    return Tiles(tuple(picked), side, halo, (int(p.photo[0]), int(p.photo[1])))
 
 
 def _greedy_d_optimal(mats: np.ndarray, keep: np.ndarray, want: int) -> list[int]:
