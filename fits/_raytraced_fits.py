@@ -414,15 +414,15 @@ def no_paths(text: str) -> str:
     return text
 
 
-def default_fit(scene, a, d, x64: bool) -> dict:
-    """`fit_lens(image, depth, photo, init)` with every default on one scene and lens; an
-    exception is caught and recorded (it is a finding, not a crash of the study)."""
+def default_fit(scene, a, d, x64: bool, options: dict | None = None) -> dict:
+    """`fit_lens(image, depth, photo, init)` with every default (or `options` forced) on one
+    scene and lens; an exception is caught and recorded (a finding, not a crash of the study)."""
     image, z, target = default_inputs(scene, a, d)
     dtype = np.float64 if x64 else np.float32
     image, z, target = (np.asarray(x, dtype) for x in (image, z, target))
     t0 = time.perf_counter()
     try:
-        res = fit_lens(image, z, target, default_init(a, d))
+        res = fit_lens(image, z, target, default_init(a, d), **(options or {}))
         jax.block_until_ready(res.lenses.focus_distance)
     except Exception as err:
         head = (str(err).splitlines() or [""])[0][:300]
@@ -435,18 +435,22 @@ def default_fit(scene, a, d, x64: bool) -> dict:
             traceback=[no_paths(line) for line in traceback.format_exc().splitlines()][-25:],
         )
     seconds = time.perf_counter() - t0
-    return dict(scene=scene, a=a, d=d, seconds=seconds, **default_record(res, a, d, z))
+    record = default_record(res, a, d, z)
+    return dict(scene=scene, a=a, d=d, seconds=seconds, treatment=str(res.treatment), **record)
 
 
-def run_default(scenes, x64: bool, fp: str) -> list[dict]:
-    """Every default fit of `scenes` (cached per fingerprint `fp` and precision)."""
-    folder = CACHE / "default" / f"{fp}_{'f64' if x64 else 'f32'}"
+def run_default(
+    scenes, x64: bool, fp: str, variant: str = "", options: dict | None = None
+) -> list[dict]:
+    """Every default fit of `scenes` (cached per fingerprint `fp` and precision), or with
+    `options` forced (cached apart under the name `variant`)."""
+    folder = CACHE / "default" / f"{fp}_{'f64' if x64 else 'f32'}{variant}"
     out = []
     for scene in scenes:
         for a, d in default_lenses(scene):
             rec, computed = cached_json(
                 folder / f"{scene}_A{a}_df{d}.json",
-                lambda scene=scene, a=a, d=d: default_fit(scene, a, d, x64),
+                lambda scene=scene, a=a, d=d: default_fit(scene, a, d, x64, options),
             )
             if computed:
                 what = (

@@ -717,6 +717,15 @@ SCENE_TEXT = {
     "bottom row) before a wall at 7 m; the floor connects near and far",
     "pentagon": "a plane of its own (slant2, z 1.6-4.8 m, no depth edge) through a regular "
     "pentagonal aperture of the disc's area (sum of pinhole views): an aperture the model lacks",
+    "thin": "thin structures: six poles (1.8-5 px wide) at 1.25-2.5 m and three slanted branches "
+    "(1.5-2.3 px) on a floor before a wall at 5 m",
+    "fgbg": "a card at 1.8 m over 40 % of the frame (a vertical and a diagonal edge) before a "
+    "wall at 6 m; two lenses focused on the card (a sharp foreground over a blurred background), "
+    "two on the wall (the reverse)",
+    "texture": "one plane (z 1.9-3.6 m, no depth edge) with a texture near the sampling limit "
+    "(detail of 2-3 px period, 32 % of the power above 0.25 cycles/px)",
+    "lightfield": "ground's scene as a refocused light field: shift-and-add of an 11 x 11 grid of "
+    "pinhole views inside the disc (97 views, no view interpolation)",
 }
 
 
@@ -856,8 +865,8 @@ def default_fit_table(records, scenes) -> list[str]:
     """One row per fit of `scenes`."""
     out = [
         "| scene | A m | d_f m | K px | success / status | message | focus err | K err | "
-        "abs err / se (focus, K) | pixels used (border) | s | verdict |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "abs err / se (focus, K) | pixels used (border) | treatment | s | verdict |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for rec in records:
         if rec["scene"] not in scenes:
@@ -866,7 +875,7 @@ def default_fit_table(records, scenes) -> list[str]:
         head = f"| {rec['scene']} | {a} | {df_label(d)} | {k_label(a, d)} |"
         if "exception" in rec:
             out.append(
-                head + f" exception | {rec['exception'][:90]} | | | | | "
+                head + f" exception | {rec['exception'][:90]} | | | | | | "
                 f"{rec['seconds']:.0f} | ! exception |"
             )
             continue
@@ -875,6 +884,7 @@ def default_fit_table(records, scenes) -> list[str]:
             head
             + f" {rec['success']} / {rec['status']} | {first_clause(rec['message'])} | {focus} | "
             f"{rec['k_err']:+.2%} | {rec['focus_z']:.2g}, {rec['k_z']:.2g} | "
-            f"{rec['pixels_used']} ({rec['border']}) | {rec['seconds']:.0f} | {verdict(rec)} |"
+            f"{rec['pixels_used']} ({rec['border']}) | {rec.get('treatment', '')} | "
+            f"{rec['seconds']:.0f} | {verdict(rec)} |"
         )
     return out + [""]

@@ -1,7 +1,8 @@
 """Ray-traced truth for `raytraced.py`: the Mitsuba 3 scenes, their renders (cached on disk), the
 lens and depth mapping to jaxdof, the blur-disc measurement, and the CI fixtures cut from them;
 and for `raytraced_default.py`: its scenes and lenses (`DEFAULT_SCENES`), the held-out half
-(`HELD_OUT`), and apertures Mitsuba's thin lens lacks (`render_aperture_sum`).
+(`HELD_OUT`), and apertures Mitsuba's thin lens lacks and a refocused light field
+(`render_aperture_sum`).
 
 Mitsuba is imported only when something has to be rendered (or its version reported): with every
 render cached, nothing here needs it.
@@ -94,15 +95,25 @@ def bright_texture(seed: int) -> np.ndarray:
     return (4 * texture(seed) ** 3).astype(np.float32)
 
 
+def fine_texture(seed: int, n: int = 384) -> np.ndarray:
+    """`texture(seed)` cut into blobs about two texels across: thresholded noise (sigma 0.7
+    texels) keeps it or darkens it to a fifth, so most of the contrast is at the finest scale: the
+    `texture` scene's detail near the sampling limit."""
+    from scipy.ndimage import gaussian_filter
+
+    noise = gaussian_filter(np.random.default_rng(seed + 1000).normal(size=(n, n)), 0.7)
+    return (texture(seed, n) * np.where(noise > 0, 1.0, 0.2)[..., None]).astype(np.float32)
+
+
 def _emissive(
-    mi, shape: dict, seed: int | None = None, value=None, uv_scale=(1.0, 1.0), bright=False
+    mi, shape: dict, seed: int | None = None, value=None, uv_scale=(1.0, 1.0), tex=texture
 ) -> dict:
     radiance = (
         {"type": "rgb", "value": value}
         if value is not None
         else {
             "type": "bitmap",
-            "bitmap": mi.Bitmap(bright_texture(seed) if bright else texture(seed)),
+            "bitmap": mi.Bitmap(tex(seed)),
             "raw": True,
             "to_uv": mi.ScalarTransform3f().scale(list(uv_scale)),
         }
@@ -114,9 +125,9 @@ def _emissive(
     }
 
 
-def _card(mi, cx, cy, z, sx, sy, seed, rot_y=0.0, rot_x=0.0, period=TEXTURE_PERIOD, bright=False):
-    """A textured rectangle centred at (cx, cy, z), half-sizes (sx, sy), emitting toward -z; its
-    texture repeats every `period` metres."""
+def _card(mi, cx, cy, z, sx, sy, seed, rot_y=0.0, rot_x=0.0, period=TEXTURE_PERIOD, tex=texture):
+    """A rectangle centred at (cx, cy, z), half-sizes (sx, sy), emitting toward -z, textured by
+    `tex(seed)` repeated every `period` metres."""
     T = mi.ScalarTransform4f
     to_world = (
         T()
@@ -127,9 +138,7 @@ def _card(mi, cx, cy, z, sx, sy, seed, rot_y=0.0, rot_x=0.0, period=TEXTURE_PERI
         .scale([sx, sy, 1.0])
     )
     uv = (2 * sx / period, 2 * sy / period)
-    return _emissive(
-        mi, {"type": "rectangle", "to_world": to_world}, seed, uv_scale=uv, bright=bright
-    )
+    return _emissive(mi, {"type": "rectangle", "to_world": to_world}, seed, uv_scale=uv, tex=tex)
 
 
 def scene_shapes(mi, name: str) -> dict:
@@ -383,19 +392,24 @@ def plane_geometry():
 
 
 # ----------------------------------------------------------------------------- issue 20's scenes
-# The scenes of the default-call study (`raytraced_default.py`, issue 20 item 7): the three above
-# and five more, each with the lenses it is fitted at. Every geometry is self-emitting as above.
+# The scenes of the default-call study (`raytraced_default.py`, issue 20 item 7 and issue 21): the
+# three above and nine more, each with the lenses it is fitted at. Every geometry is self-emitting
+# as above.
 
 DEFAULT_LENSES = ((0.03, 1.8), (0.1, 1.8), (0.06, 3.0), (0.1, 3.0))  # (A m, d_f m): K 2.9-9.8 px
 # The landscape: three lenses focused at infinity, one at 20 m (a focus the photo can tell apart
 # from infinity: its circles differ from infinity's by A f_px / 20 m = 0.9 px).
 LANDSCAPE_LENSES = ((0.06, math.inf), (0.1, math.inf), (0.15, math.inf), (0.1, 20.0))
+# fgbg: two lenses focused on its foreground card (1.8 m), two on its wall (6 m): a sharp
+# foreground before a blurred background and the reverse, circles up to 6.8 px either way.
+FGBG_LENSES = ((0.06, 1.8), (0.1, 1.8), (0.06, 6.0), (0.1, 6.0))
 
 # scene: (geometry rendered, how its photo is made). `thinlens`: Mitsuba's thin-lens camera;
 # `vignette`: that photo times `vignetting()` (the model has no falloff); `pentagon`: the sum of
 # pinhole views over a regular pentagon of the disc's area (`render_aperture_sum`); `landscape`:
 # the same sum over a disc where the focus is at infinity (Mitsuba's thin lens cannot be focused
-# there), Mitsuba's thin lens elsewhere.
+# there), Mitsuba's thin lens elsewhere; `lightfield`: a refocused light field, the same sum over
+# a square grid of views inside the disc (`LIGHTFIELD_GRID` per side, no view interpolation).
 DEFAULT_SCENES = {
     "planes": ("planes", "thinlens"),
     "slant": ("slant", "thinlens"),
@@ -405,23 +419,30 @@ DEFAULT_SCENES = {
     "landscape": ("landscape", "landscape"),
     "ground": ("ground", "thinlens"),
     "pentagon": ("slant2", "pentagon"),
+    "thin": ("thin", "thinlens"),
+    "fgbg": ("fgbg", "thinlens"),
+    "texture": ("texture", "thinlens"),
+    "lightfield": ("ground", "lightfield"),
 }
-# The held-out half. Rule: a scene is held out when its photos were first rendered for issue 20
-# item 7, after every constant in jaxdof had been chosen, and no constant in jaxdof (the border
-# band, the focus coordinate, the starts, the adequacy test's tiles and threshold, ...) was
+# The held-out half. Rule: a held-out scene's photos were first rendered for issue 20 item 7 or
+# issue 21, after every constant in jaxdof had been chosen, and no constant in jaxdof (the border
+# band, the focus coordinate, the starts, the adequacy test's tiles and threshold, ...) is ever
 # tuned on it; tune only on `TUNING` and report the held-out half apart. `TUNING` holds the
-# scenes the earlier studies (raytraced.md) used, and `vignette`, which is slant's photos.
-HELD_OUT = ("outside", "landscape", "ground", "pentagon")
+# scenes the earlier studies (raytraced.md) used, `vignette` (slant's photos), and two of issue
+# 21's scenes, `thin` and `texture`, so that the halves are equal.
+HELD_OUT = ("outside", "landscape", "ground", "pentagon", "fgbg", "lightfield")
 TUNING = tuple(name for name in DEFAULT_SCENES if name not in HELD_OUT)
 
 APERTURE_VIEWS = 1024  # pinhole views per aperture-sum render, one sample per pixel each
+LIGHTFIELD_GRID = 11  # the light field's views per side of its square grid (97 inside the disc)
+LIGHTFIELD_SPP = 16  # samples per pixel of each light-field view
 LANDSCAPE_INIT_FOCUS = 20.0  # the init's focus (m) for a lens focused at infinity: a finite one
 OUTSIDE_ROT_Y = 50.0  # the `outside` plane's turn about y (degrees)
 BAR_Z = 1.0  # the `outside` scene's bright bars above and below the frame (m)
 
 
 def default_lenses(scene: str):
-    return LANDSCAPE_LENSES if scene == "landscape" else DEFAULT_LENSES
+    return {"landscape": LANDSCAPE_LENSES, "fgbg": FGBG_LENSES}.get(scene, DEFAULT_LENSES)
 
 
 def _ground(mi, y, z0, z1, half_width, seed, period=TEXTURE_PERIOD) -> dict:
@@ -441,6 +462,20 @@ def _sphere(mi, center, radius, seed) -> dict:
     return _emissive(mi, shape, seed=seed, uv_scale=uv)
 
 
+def _cylinder(mi, p0, p1, radius, seed) -> dict:
+    """A textured open cylinder of `radius` from `p0` to `p1` (world points)."""
+    length = float(np.linalg.norm(np.subtract(p1, p0)))
+    uv = (2 * math.pi * radius / TEXTURE_PERIOD, length / TEXTURE_PERIOD)
+    shape = {"type": "cylinder", "p0": list(p0), "p1": list(p1), "radius": radius}
+    return _emissive(mi, shape, seed=seed, uv_scale=uv)
+
+
+def _at(col, row, z) -> list:
+    """The world point at depth `z` that the pinhole image shows at (`col`, `row`) px from its
+    top left corner (Mitsuba's camera has +x to the image's left, +y up)."""
+    return [-(col - W / 2) / F_PX * z, -(row - H / 2) / F_PX * z, z]
+
+
 def outside_shapes(mi) -> dict:
     """`outside`: a plane turned 50 deg about y through (0, 0, 2.5 m) (z 1.7-4.4 m across the
     frame, no depth edge in it) that ends half a pixel beyond the frame's left and right edges,
@@ -456,20 +491,18 @@ def outside_shapes(mi) -> dict:
     q_left, q_right = -tm * z0 / (c + tm * s), tm * z0 / (c - tm * s)
     sy = tm * (z0 + q_right * s) + 0.1  # the frame's top at the far edge, and a margin
 
-    def strip(q0, q1, seed, bright):
+    def strip(q0, q1, seed, tex):
         q, half = (q0 + q1) / 2, (q1 - q0) / 2
-        return _card(
-            mi, -q * c, 0.0, z0 + q * s, half, sy, seed, rot_y=OUTSIDE_ROT_Y, bright=bright
-        )
+        return _card(mi, -q * c, 0.0, z0 + q * s, half, sy, seed, rot_y=OUTSIDE_ROT_Y, tex=tex)
 
     y_bar = t * BAR_Z * (W / 2 + 1.5) / (W / 2)
     half_x = t * BAR_Z + 0.4
     return {
-        "plane": strip(q_left, q_right, 12, False),
-        "left": strip(q_left - 0.8, q_left, 13, True),
-        "right": strip(q_right, q_right + 1.5, 14, True),
-        "top": _card(mi, 0.0, y_bar + 0.15, BAR_Z, half_x, 0.15, 15, bright=True),
-        "bottom": _card(mi, 0.0, -y_bar - 0.15, BAR_Z, half_x, 0.15, 16, bright=True),
+        "plane": strip(q_left, q_right, 12, texture),
+        "left": strip(q_left - 0.8, q_left, 13, bright_texture),
+        "right": strip(q_right, q_right + 1.5, 14, bright_texture),
+        "top": _card(mi, 0.0, y_bar + 0.15, BAR_Z, half_x, 0.15, 15, tex=bright_texture),
+        "bottom": _card(mi, 0.0, -y_bar - 0.15, BAR_Z, half_x, 0.15, 16, tex=bright_texture),
     }
 
 
@@ -490,25 +523,13 @@ def landscape_shapes(mi) -> dict:
 def ground_shapes(mi) -> dict:
     """`ground`: curved objects standing on a textured floor 0.8 m below the camera (the floor
     connects near and far: z 2.2 m at the bottom row to a wall at 7 m), two balls and a pole."""
-    T = mi.ScalarTransform4f
     y0 = -0.8
     return {
         "floor": _ground(mi, y0, 1.0, 7.0, 4.5, 31),
         "wall": _card(mi, 0.0, (y0 + 3.0) / 2, 7.0, 4.0, (3.0 - y0) / 2, 32),
         "ball1": _sphere(mi, (-0.45, y0 + 0.3, 2.6), 0.3, 33),
         "ball2": _sphere(mi, (0.55, y0 + 0.45, 4.0), 0.45, 34),
-        "pole": _emissive(
-            mi,
-            {
-                "type": "cylinder",
-                "p0": [0.1, y0, 3.2],
-                "p1": [0.1, 0.7, 3.2],
-                "radius": 0.1,
-                "to_world": T(),
-            },
-            seed=35,
-            uv_scale=(2 * math.pi * 0.1 / TEXTURE_PERIOD, 1.5 / TEXTURE_PERIOD),
-        ),
+        "pole": _cylinder(mi, (0.1, y0, 3.2), (0.1, 0.7, 3.2), 0.1, 35),
     }
 
 
@@ -518,11 +539,66 @@ def slant2_shapes(mi) -> dict:
     return {"plane": _card(mi, 0.0, 0.0, 2.4, 8.0, 3.0, 41, rot_y=-48.0, rot_x=-10.0)}
 
 
+def thin_shapes(mi) -> dict:
+    """`thin`: thin structures before a wall at 5 m, on a floor 0.8 m below the camera (z 2.2 m
+    at the bottom row): six vertical poles at 1.25-2.5 m, radius 1-3 cm (1.8-5 px wide), and
+    three slanted branches, radius 0.8-1.2 cm (1.5-2.3 px), each starting or ending inside a pole
+    and crossing others in front or behind: occlusion edges in pairs 1.5-5 px apart."""
+    y0 = -0.8
+    poles = ((12, 2.3, 0.012), (31, 1.25, 0.01), (50, 1.9, 0.02))
+    poles += ((70, 2.5, 0.015), (88, 1.5, 0.015), (108, 2.1, 0.03))
+    # (col, row, z) of each end, rows beyond the frame where a branch leaves it
+    branches = (((31, 70, 1.25), (80, -30, 1.7), 0.008), ((-20, 25, 2.2), (50, 100, 1.9), 0.012))
+    branches += (((108, 70, 2.1), (60, -30, 2.3), 0.01),)
+    shapes = {"floor": _ground(mi, y0, 1.0, 5.0, 2.6, 51), "wall": _card(mi, 0, 0, 5, 2.6, 2.6, 52)}
+    for k, (col, z, r) in enumerate(poles):
+        x = _at(col, 0, z)[0]
+        shapes[f"pole{k}"] = _cylinder(mi, (x, y0, z), (x, 2.0, z), r, 53 + k)
+    for k, (p0, p1, r) in enumerate(branches):
+        shapes[f"branch{k}"] = _cylinder(mi, _at(*p0), _at(*p1), r, 59 + k)
+    return shapes
+
+
+def fgbg_shapes(mi) -> dict:
+    """`fgbg`: a card at 1.8 m before a wall at 6 m. The card covers 40 % of the frame, from the
+    left and bottom borders to a vertical edge at column 72 (row 62 down) and a diagonal edge (35
+    deg) from row 12 at the left border to row 62 at column 72: a parallelogram, the rectangle
+    sheared in its plane. Focused on either, a sharp foreground before a blurred background or
+    the reverse (`FGBG_LENSES`)."""
+    T = mi.ScalarTransform4f
+    t = math.tan(math.radians(FOV_X) / 2) + 0.15  # the frame's half-width per metre, and a margin
+    z, slope = 1.8, 50 / 72
+    x_r, y_r = _at(72, 62, z)[:2]  # the corner
+    x_l = t * z  # beyond the left border
+    h = y_r + slope * (x_l - x_r) + t * z  # the vertical extent: past the bottom border
+    cx, sx, sy = (x_l + x_r) / 2, (x_l - x_r) / 2, h / 2
+    cy = y_r + slope * (cx - x_r) - sy
+    shear = T(mi.ScalarMatrix4f([[1, 0, 0, 0], [slope, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]))
+    to_world = T().translate([cx, cy, z]) @ shear @ T().rotate([0, 1, 0], 180.0).scale([sx, sy, 1])
+    card = _emissive(mi, {"type": "rectangle", "to_world": to_world}, 71)
+    # uv along the world's x and y: the texture is not sheared with the card
+    k = 2 / TEXTURE_PERIOD
+    uv = [[k * sx, 0, 0], [-k * slope * sx, k * sy, 0], [0, 0, 1]]
+    card["emitter"]["radiance"]["to_uv"] = mi.ScalarTransform3f(uv)
+    return {"card": card, "wall": _card(mi, 0.0, 0.0, 6.0, 6 * t, 6 * t, 72)}
+
+
+def texture_shapes(mi) -> dict:
+    """`texture`: one plane through (0, 0, 2.5 m), turned 35 deg about y and 8 deg about x (z
+    1.9-3.6 m, no depth edge), with `fine_texture` repeated every 4 m: its texels 0.5-1 px, its
+    blobs near the sampling limit (the finest detail 2-3 px)."""
+    plane = _card(mi, 0, 0, 2.5, 8, 3, 81, rot_y=35.0, rot_x=8.0, period=4.0, tex=fine_texture)
+    return {"plane": plane}
+
+
 NEW_GEOMETRIES = {
     "outside": outside_shapes,
     "landscape": landscape_shapes,
     "ground": ground_shapes,
     "slant2": slant2_shapes,
+    "thin": thin_shapes,
+    "fgbg": fgbg_shapes,
+    "texture": texture_shapes,
 }
 
 
@@ -531,7 +607,13 @@ def aperture_points(shape: str, radius: float, n: int = APERTURE_VIEWS) -> np.nd
     disc of that radius, or the regular pentagon of the same area (a vertex up; circumradius
     1.15 radius, second moment 1.7 % above the disc's), from the R2 low-discrepancy sequence
     (Roberts 2018) mapped by Shirley and Chiu's concentric map (disc) or onto a fan of five
-    equal triangles (pentagon)."""
+    equal triangles (pentagon). `grid`: a light field's views, the centres of the `isqrt(n)`^2
+    square cells tiling the disc's bounding square that lie in the disc (fewer than n: 97 of
+    11^2, second moment 1.7 % above the disc's)."""
+    if shape == "grid":
+        c = (2 * np.arange(math.isqrt(n)) + 1) / math.isqrt(n) - 1
+        p = np.stack(np.meshgrid(c, c), -1).reshape(-1, 2)
+        return radius * p[(p**2).sum(-1) <= 1]
     g = 1.32471795724474602596  # the plastic number: R2's generator
     k = np.arange(n)
     u, v = (0.5 + k / g) % 1.0, (0.5 + k / g**2) % 1.0
@@ -557,7 +639,8 @@ def aperture_points(shape: str, radius: float, n: int = APERTURE_VIEWS) -> np.nd
 
 def render_aperture_sum(geometry: str, shape: str, a: float, d: float, seed: int = 0) -> np.ndarray:
     """A thin lens of any aperture shape, focused at `d` (m, `inf` allowed), as the mean of pinhole
-    views from `aperture_points(shape, a)`, one sample per pixel each (`APERTURE_VIEWS` in all).
+    views from `aperture_points(shape, a)`, one sample per pixel each (`APERTURE_VIEWS` in all);
+    for `grid`, a refocused light field: its views, `LIGHTFIELD_SPP` samples per pixel each.
 
     A view's eye moves to the aperture point `(x, y, 0)`; moving the eye shifts the image of a
     point at depth z by `f_px (x, y) / z` pixels, so the film's principal point is offset by the
@@ -567,18 +650,19 @@ def render_aperture_sum(geometry: str, shape: str, a: float, d: float, seed: int
     offset: every view is parallel). Checked against Mitsuba's thin lens for a disc in
     `raytraced_default.md`."""
     mi = mitsuba()
+    grid = shape == "grid"
     scene = mi.load_dict(
         {
             "type": "scene",
             "integrator": {"type": "path", "max_depth": 1},
-            "sensor": _sensor(mi, "perspective", 1),
+            "sensor": _sensor(mi, "perspective", LIGHTFIELD_SPP if grid else 1),
             **scene_shapes(mi, geometry),
         }
     )
     params = mi.traverse(scene)
     T = mi.ScalarTransform4f
     power = 0.0 if math.isinf(d) else 1.0 / d
-    points = aperture_points(shape, a)
+    points = aperture_points(shape, a, LIGHTFIELD_GRID**2 if grid else APERTURE_VIEWS)
     acc = np.zeros((H, W, 3))
     for k, (x, y) in enumerate(points):
         x, y = float(x), float(y)
@@ -612,8 +696,8 @@ def photo(scene: str, a: float, d: float, seed: int = 0):
     """`(photo, render seconds)` of a default-study scene and lens (cached)."""
     geometry, kind = DEFAULT_SCENES[scene]
     tail = "" if seed == 0 else f"_seed{seed}"
-    if kind == "pentagon" or (kind == "landscape" and math.isinf(d)):
-        shape = "pentagon" if kind == "pentagon" else "disc"
+    if kind in ("pentagon", "lightfield") or (kind == "landscape" and math.isinf(d)):
+        shape = {"pentagon": "pentagon", "lightfield": "grid"}.get(kind, "disc")
         return cached(
             f"{geometry}_sum_{shape}_A{a}_df{d}{tail}",
             lambda: render_aperture_sum(geometry, shape, a, d, seed=seed),

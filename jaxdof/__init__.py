@@ -31,6 +31,7 @@ from ._fit import (
     AbstractForwardModel as AbstractForwardModel,
     DefocusModel as DefocusModel,
     FitResult as FitResult,
+    Treatment as Treatment,
     fit_lens as fit_lens,
     solve_lens as solve_lens,
 )

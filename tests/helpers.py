@@ -7,6 +7,12 @@ import numpy as np
 import jaxdof
 
 
+# The model the synthetic targets here are rendered with (`jaxdof.render`'s default): these tests
+# check the solve, so they fit exactly that model instead of the treatment `fit_lens` would choose
+# for a real photo (occlusion, edge weight, footprint; tests/test_treatment.py).
+EXACT = dict(method="soft", footprint=False, edge_weight=False)
+
+
 def overlap_by_integration(dx: float, dy: float, r: float) -> float:
     """Area of disc(0, r) ∩ unit square at (dx, dy) by 30-digit quadrature of the column heights.
 

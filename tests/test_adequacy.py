@@ -11,6 +11,8 @@ import scipy.stats
 import jaxdof
 from jaxdof._fit.adequacy import ALPHA, ROUNDING_FACTOR, adequacy, rounding_noise, tile_grid
 
+from .helpers import EXACT
+
 
 H = W = 16
 P = 3
@@ -274,7 +276,7 @@ def fit_from_truth(image, depth, target, truth, border=0):
     """`fit_lens` from the truth, one start (the check, not the search for the basin, is under
     test), and its largest |error| / reported standard error over (N, d_f). `border=0` by
     default: every pixel, as in the study's main table (fits/results/adequacy_border0.md)."""
-    kw = dict(free=FREE, max_radius=WINDOW, starts=1, border=border)
+    kw = dict(free=FREE, max_radius=WINDOW, starts=1, border=border, **EXACT)
     fit = jaxdof.fit_lens(image, depth, target, truth, **kw)
     err = np.array(
         [

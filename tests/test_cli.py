@@ -303,7 +303,8 @@ def test_fit_arguments(files, monkeypatch):
     assert targets.shape == (2, H, W, 3) and len(call.targets) == 2
     k = call.kwargs
     assert k["shared"] == ("f_number",) and k["free"] == ("focus_distance", "f_number")
-    assert k["method"] == "soft" and k["border"] == "auto" and k["weight"] is None
+    assert k["method"] is None and k["footprint"] is None and k["edge_weight"] is None
+    assert k["border"] == "auto" and k["weight"] is None
     assert float(init.focus_distance) == pytest.approx(float(np.median(depth)))
     extra = ["--weight", "half.png", "--border", "off", "--focus", "inf", "--quiet"]
     call = commands.fit_call(parse([*F, *extra]))

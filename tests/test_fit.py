@@ -29,6 +29,8 @@ from jaxdof._fit import (
     strategies,
 )
 
+from .helpers import EXACT
+
 
 H = W = 32
 PITCH = 8e-5  # m: large pixels, so that a 50 mm f/2 lens gives circles of a few pixels here
@@ -87,7 +89,7 @@ def test_noise_free_recovery_float64(free):
     true = lens()
     target = render(image, depth, true)
     res = fit_lens(
-        image, depth, target, wrong_init(free), free=free, max_radius=WINDOW, starts=STARTS
+        image, depth, target, wrong_init(free), free=free, max_radius=WINDOW, starts=STARTS, **EXACT
     )
     assert bool(res.success), res.message
     err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
@@ -168,9 +170,9 @@ def test_dead_zone_detected():
     tiny = lens(f_number=64.0, focus_distance=1.9)  # K = 0.16 px
     target = render(image, depth, tiny)
     with pytest.raises(ValueError, match="every circle is under half a pixel"):
-        fit_lens(image, depth, target, tiny, max_radius=WINDOW, starts=STARTS)
+        fit_lens(image, depth, target, tiny, max_radius=WINDOW, starts=STARTS, **EXACT)
     res = fit_lens(
-        image, depth, target, tiny, max_radius=WINDOW, starts=STARTS, allow_degenerate=True
+        image, depth, target, tiny, max_radius=WINDOW, starts=STARTS, allow_degenerate=True, **EXACT
     )
     assert not bool(res.success) and "half a pixel" in res.message
     assert bool(res.status == RESULTS.dead_zone)
@@ -219,7 +221,7 @@ def test_stderr_matches_noisy_spread():
     est, se, fired = [], [], 0
     for _ in range(30):
         target = clean + sigma * rng.standard_normal(clean.shape)
-        res = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+        res = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS, **EXACT)
         # The model is right: the adequacy test fires only by chance (alpha = 0.01).
         assert res.status in (RESULTS.successful, RESULTS.inconsistent), res.message
         fired += int(res.status == RESULTS.inconsistent)
@@ -347,6 +349,7 @@ def test_weight_masks_pixels():
         weight=weight,
         max_radius=WINDOW,
         starts=STARTS,
+        **EXACT,
     )
     assert bool(res.success), res.message
     err = rel_err(res.lens, lens(), ("f_number", "focus_distance"))
@@ -631,7 +634,14 @@ def test_pyramid_recovers_from_wrong_starts():
     target = render(image, depth, true)
     free = ("f_number", "focus_distance")
     res = fit_lens(
-        image, depth, target, wrong_init(free), max_radius=WINDOW, starts=STARTS, pyramid=PYRAMID
+        image,
+        depth,
+        target,
+        wrong_init(free),
+        max_radius=WINDOW,
+        starts=STARTS,
+        pyramid=PYRAMID,
+        **EXACT,
     )
     assert bool(res.success), res.message
     assert res.levels == PYRAMID
@@ -843,7 +853,7 @@ def test_recovers_focus_at_and_near_infinity(true_focus, init_focus):
     image, depth = far_scene()
     target = render(image, depth, lens(focus_distance=true_focus))
     init = lens(f_number=3.0, focus_distance=init_focus)
-    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW)
+    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW, **EXACT)
     assert bool(res.success), res.message
     assert abs(float(res.lens.f_number) / TRUE["f_number"] - 1) < 1e-4
     if np.isinf(true_focus):
@@ -865,7 +875,7 @@ def test_recovers_focus_at_infinity_float32():
     clean = np.asarray(render(image, depth, lens(np.float32, focus_distance=np.inf)))
     target = (clean + 0.01 * rng.standard_normal(clean.shape)).astype(np.float32)
     init = lens(np.float32, f_number=3.0, focus_distance=30.0)
-    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW)
+    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW, **EXACT)
     assert bool(res.success), res.message
     se = float(res.stderr["f_number"])
     assert abs(float(res.lens.f_number) - TRUE["f_number"]) < 4 * se  # noise: within 4 sigma
@@ -879,7 +889,7 @@ def test_init_focused_at_infinity():
     truth = lens(focus_distance=np.inf)
     target = render(image, depth, truth)
     init = lens(f_number=3.0, focus_distance=np.inf)
-    res = fit_lens(image, depth, target, init, free=("f_number",), max_radius=FAR_WINDOW)
+    res = fit_lens(image, depth, target, init, free=("f_number",), max_radius=FAR_WINDOW, **EXACT)
     assert bool(res.success), res.message
     assert np.isinf(float(res.lens.focus_distance))  # fixed: the init's
     np.testing.assert_allclose(float(res.lens.f_number), TRUE["f_number"], rtol=1e-6)
@@ -905,7 +915,7 @@ def test_focus_running_to_infinity_returns_a_result():
     image, depth = far_scene()
     target = render(image, depth, lens(focus_distance=8.0))
     init = lens(f_number=4.0, focus_distance=60.0)
-    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW)
+    res = fit_lens(image, depth, target, init, max_radius=FAR_WINDOW, **EXACT)
     assert bool(res.success), res.message
     np.testing.assert_allclose(float(res.lens.focus_distance), 8.0, rtol=1e-4)
     np.testing.assert_allclose(float(res.lens.f_number), TRUE["f_number"], rtol=1e-4)

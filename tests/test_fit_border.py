@@ -16,6 +16,8 @@ import jaxdof
 from jaxdof import ThinLens, fit_lens, render, solve_lens
 from jaxdof._fit import strategies
 
+from .helpers import EXACT
+
 
 H = W = 32
 PITCH = 8e-5  # m, as in tests/test_fit.py: a 50 mm f/2 lens makes circles of a few pixels
@@ -52,7 +54,7 @@ def test_border_on_by_default_recovers_the_lens():
     model's zeros stand in for the outside light."""
     image, depth, photo = cropped_scene()
     init = lens(n=3.0, d_f=2.0)
-    kw = dict(free=FREE, max_radius=WINDOW, starts=2)
+    kw = dict(free=FREE, max_radius=WINDOW, starts=2, **EXACT)
     res = fit_lens(image, depth, photo, init, **kw)
     assert bool(res.success), res.message
     # Inside the band every pixel's light comes from inside the frame: the fit is exact up to the
@@ -75,7 +77,7 @@ def test_border_is_a_weight():
     """The band multiplies the user's weight: a weighted fit with the band is the fit with
     weight * band and no band, to rounding, and an int is that band in photo pixels."""
     image, depth, photo = cropped_scene(seed=1)
-    kw = dict(free=FREE, max_radius=WINDOW, starts=2)
+    kw = dict(free=FREE, max_radius=WINDOW, starts=2, **EXACT)
     weight = np.random.default_rng(2).uniform(0.5, 1.5, size=(H, W))
     band = strategies.border_mask((H, W), 6)
     a = fit_lens(image, depth, photo, lens(), weight=weight, **kw)
@@ -94,7 +96,9 @@ def test_border_follows_the_window():
     photo's pixels already), one pixel more with the footprint correction, whose Laplacian reads
     a neighbour."""
     image, depth, photo = cropped_scene(seed=3)
-    res = fit_lens(image, depth, photo, lens(n=2.4), free=FREE, starts=1)  # automatic window
+    res = fit_lens(
+        image, depth, photo, lens(n=2.4), free=FREE, starts=1, **EXACT
+    )  # automatic window
     assert bool(res.success), res.message
     assert res.border == math.ceil(res.max_radius)
     model = jaxdof.DefocusModel
@@ -118,13 +122,13 @@ def test_border_with_downsample_and_pyramid():
     photo = np.asarray(render(image, depth, lens(), max_radius=WINDOW, downsample=2))
     crop = (slice(2 * PAD, 2 * (PAD + H)), slice(2 * PAD, 2 * (PAD + W)))
     photo = photo[PAD : PAD + H, PAD : PAD + W]
-    kw = dict(free=FREE, max_radius=WINDOW, downsample=2, starts=1)
+    kw = dict(free=FREE, max_radius=WINDOW, downsample=2, starts=1, **EXACT)
     res = fit_lens(image[crop], depth[crop], photo, lens(n=2.4, d_f=1.8), **kw)
     assert bool(res.success), res.message
     assert res.border == 6 and int(res.pixels_used) == 400
     assert rel_err(res) < 1e-6, rel_err(res)
     image, depth, photo = cropped_scene(seed=5)
-    kw = dict(free=FREE, max_radius=WINDOW, starts=2, pyramid=2)
+    kw = dict(free=FREE, max_radius=WINDOW, starts=2, pyramid=2, **EXACT)
     res = fit_lens(image, depth, photo, lens(n=2.6, d_f=1.9), **kw)
     assert bool(res.success) and res.levels == 2, res.message
     assert res.border == 6 and rel_err(res) < 1e-6, rel_err(res)
@@ -133,7 +137,7 @@ def test_border_with_downsample_and_pyramid():
 def test_border_falls_back_on_a_tiny_image():
     """A band that leaves no pixel: every pixel is kept, and the message says so."""
     image, depth, photo = (x[:10, :10] for x in cropped_scene(seed=6))
-    kw = dict(free=("f_number",), max_radius=WINDOW, starts=1)
+    kw = dict(free=("f_number",), max_radius=WINDOW, starts=1, **EXACT)
     res = fit_lens(image, depth, photo, lens(n=2.4), **kw)
     assert res.border == 0 and int(res.pixels_used) == 100
     assert "border band of 6 px" in res.message and "every pixel" in res.message

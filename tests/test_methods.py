@@ -186,7 +186,15 @@ def test_user_method_runs_through_coc_filter_render_jit_and_grad():
     photo = render(image, depth, lens, method=method, max_radius=3.0)
     start = ThinLens(0.05, 2.4, 2.0, pitch)
     fit = fit_lens(
-        image, depth, photo, start, method=method, max_radius=3.0, starts=1, border=False
+        image,
+        depth,
+        photo,
+        start,
+        method=method,
+        max_radius=3.0,
+        starts=1,
+        border=False,
+        footprint=False,
     )
     assert bool(fit.success), fit.message
     # noise-free, float64: the solver's tolerance (1e-8 in log coordinates) bounds the error

@@ -8,6 +8,8 @@ import jaxdof
 from jaxdof._fit import tiles as T
 from jaxdof._fit.prepare import prepare_problem
 
+from .helpers import EXACT
+
 
 F, PITCH = 0.05, 4e-5
 TRUTH = jaxdof.ThinLens(F, 2.0, 2.0, PITCH)
@@ -94,7 +96,7 @@ def _fit_on_tiles(pyramid):
     init = jaxdof.ThinLens(F, 3.0, 1.6, PITCH)
     stages = _Stages()
     res = jaxdof.fit_lens(
-        image, depth, photo, init, tiles=4 * 32 * 32, verbose=stages, pyramid=pyramid
+        image, depth, photo, init, tiles=4 * 32 * 32, verbose=stages, pyramid=pyramid, **EXACT
     )
     assert stages.seen[0] == f"choosing tiles: {4 * 32 * 32} of {S * S} photo pixels"
     # With a scout (pyramid=2: the photo halved) the starts are solved there and the tiles

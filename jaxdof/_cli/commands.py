@@ -490,10 +490,18 @@ def fit_call(args, display: Display | None = None) -> FitCall:
         weight=weight,
         border=args.border,
         tiles=args.tiles,
+        edge_weight=args.edge_weight,
         verbose=verbose,
         **model,
     )
     return FitCall(img.array, depth, targets, init, kwargs, model, exif)
+
+
+def _fitted_model(call: FitCall, result) -> dict[str, Any]:
+    """The `jaxdof.render` options of the forward model the fit chose (`FitResult.treatment`)."""
+    t = result.treatment
+    method = call.model["method"] if call.model["method"] is not None else t.method
+    return dict(method=method, footprint=t.footprint, downsample=call.model["downsample"])
 
 
 def _available_memory() -> int | None:
@@ -567,7 +575,7 @@ def run_fit(args) -> int:
                 result,
                 args.targets,
                 _fit_inputs(args),
-                render_options=call.model,
+                render_options=_fitted_model(call, result),
             )
         note(f"wrote {args.plot}")
     return 0 if summary["success"] else 1

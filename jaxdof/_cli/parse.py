@@ -95,6 +95,22 @@ def parse_border(text: str) -> str | int:
     return value
 
 
+def parse_edge_weight(text: str) -> bool | float | None:
+    """`fit --edge-weight`: `auto` (None: the fit decides), `on`, `off` or a width > 0 (px)."""
+    word = text.strip().lower()
+    if word in ("auto", "on", "off"):
+        return {"auto": None, "on": True, "off": False}[word]
+    try:
+        value = float(word)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(
+            f"bad edge weight {text!r}: give auto, on, off or a width in photo pixels (> 0)"
+        )
+    return value
+
+
 def parse_tiles(text: str) -> str | int | None:
     """`fit --tiles`: `auto` (tiles for photos over 1 MP), `off` (the whole frame) or a budget
     of photo pixels > 0."""
@@ -251,16 +267,26 @@ def _add_file_options(p: argparse.ArgumentParser) -> None:
     )
 
 
-def _add_method_option(g, help: str) -> None:
-    g.add_argument("--method", choices=method_names(), default="soft", help=help)
+def _add_method_option(g, help: str, default: str | None = "soft") -> None:
+    g.add_argument("--method", choices=method_names(), default=default, help=help)
 
 
-def _add_footprint_options(g) -> None:
-    g.add_argument(
-        "--footprint",
-        action="store_true",
-        help="correct for the pixel footprint (blur variance r^2/4 at every radius; off by default)",
-    )
+def _add_footprint_options(g, *, fit: bool = False) -> None:
+    if fit:
+        g.add_argument(
+            "--footprint",
+            action=argparse.BooleanOptionalAction,
+            default=None,
+            help="force the pixel-footprint correction on (--footprint) or off (--no-footprint); "
+            "default: on where the starting lens's median circle is under a few pixels",
+        )
+    else:
+        g.add_argument(
+            "--footprint",
+            action="store_true",
+            help="correct for the pixel footprint (blur variance r^2/4 at every radius; off by "
+            "default)",
+        )
     g.add_argument(
         "--downsample",
         type=int,
@@ -406,6 +432,15 @@ def _add_fit_pixels(fit) -> None:
         "photo pixels",
     )
     fit.add_argument(
+        "--edge-weight",
+        type=parse_edge_weight,
+        default=None,
+        metavar="{auto,on,off,PX}",
+        help="weight the photo pixels near depth edges down: auto (default: where the edges "
+        "matter at the starting circles), on (the automatic width), off, or a width in photo "
+        "pixels",
+    )
+    fit.add_argument(
         "--tiles",
         type=parse_tiles,
         default="auto",
@@ -454,9 +489,12 @@ def _add_fit(sub) -> None:
     )
     fit.add_argument("--max-steps", type=int, default=100, metavar="N", help="solver steps (100)")
     _add_method_option(
-        fit, "filter of the forward model (default: soft); it must have a derivative in the radius"
+        fit,
+        "filter of the forward model (default: chosen by the fit: soft, or occlusion where depth "
+        "edges matter at the starting circles); it must have a derivative in the radius",
+        default=None,
     )
-    _add_footprint_options(fit)
+    _add_footprint_options(fit, fit=True)
     fit.add_argument(
         "--max-radius",
         type=parse_nonnegative,

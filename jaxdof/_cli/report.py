@@ -34,7 +34,7 @@ def fit_summary(result) -> dict:
     """The `fit --json` object of a `FitResult` (`FitResult.to_dict()`); the text output reads
     it too: lens 0's fields, `stderr`, `focus_power` and `focus_power_stderr` at the top level (a
     single photo's fit reads as one lens), then `success`, `status`, `message`, `steps`, `loss`,
-    `sigma`, `condition`, `max_radius`, `pixels_used`, `border`, `levels`, `adequacy` (the
+    `sigma`, `condition`, `max_radius`, `pixels_used`, `border`, `levels`, `treatment`, `adequacy` (the
     model-adequacy test), `stderr_kind`, `names`, `covariance`, `gain`, `offset`, and `lenses`
     with one entry per photo. SI units; a value that is not finite (a standard error the data
     cannot determine, a focus distance at infinity) is `null`.
@@ -87,6 +87,8 @@ def print_fit(
             print(f"  {name:15s} {value}{state}")
     of = f" of {pixels}" if pixels is not None else ""
     print(f"pixels used {summary['pixels_used']}{of} (border {summary['border']} px)")
+    if summary.get("treatment"):
+        print(f"treatment: {summary['treatment']['text']}")
     line = _adequacy_line(summary)
     if line is not None:
         print(line)

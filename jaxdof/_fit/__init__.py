@@ -41,6 +41,7 @@ weight, `border`).
 - `prepare.py`: input checks and conversion;
 - `solve.py`: the pure solve, statistics, the compiled stages and `solve_lens`;
 - `strategies.py`: starts, windows, the border band, the coarse-to-fine pyramid;
+- `treatment.py`: what the scene needs modelled (occlusion, edge weight, footprint): `Treatment`;
 - `verbose.py`: progress printing through optimistix's `verbose`;
 - `fit.py`: `fit_lens`, which orchestrates them.
 
@@ -71,3 +72,4 @@ from .strategies import (
     start_lenses as start_lenses,
     window_for as window_for,
 )
+from .treatment import Treatment as Treatment, choose_treatment as choose_treatment

@@ -60,6 +60,7 @@ from .tiles import (
     tiled_problem,
     use_tiles,
 )
+from .treatment import check_edge_weight, treat_scene
 from .verbose import _with_verbose
 
 
@@ -670,6 +671,7 @@ def fit_lens(
     downsample: int | None = None,
     border: bool | str | int = "auto",
     tiles: str | int | bool | None = "auto",
+    edge_weight: bool | float | None = None,
 ) -> FitResult:
     r"""Recover lens parameters from defocused photos of a scene with known image and depth.
 
@@ -726,9 +728,11 @@ def fit_lens(
       `jaxdof.DefocusModel(method=method, footprint=footprint, downsample=downsample)`. A model of
       your own (a subclass) runs through the same solve, compiled for it.
     - `method`, `footprint`, `downsample`: the default model's options, only without `model`
-      (giving both is a `ValueError`); see `jaxdof.DefocusModel`. `method` (default `"soft"`, the
-      exact coverage) must be differentiable with respect to the radius; `footprint` (default
-      off) is the pixel-footprint correction; `downsample` (default 1): the image and depth are
+      (giving both is a `ValueError`); see `jaxdof.DefocusModel`. `method` (default `None`: the
+      exact coverage `"soft"`, or `"occlusion"` where depth edges matter; see *Treatment* below)
+      must be differentiable with respect to the radius; `footprint` (default `None`: on where
+      small circles dominate) is the pixel-footprint correction; `downsample` (default 1): the
+      image and depth are
       this many times the targets' resolution in each axis, and targets, weights, the window and
       the circles are in the photo's pixels. An all-in-focus image at 2x the photo's resolution
       (a pixel-shift capture) carries the detail inside each photo pixel that blur of circles of
@@ -773,6 +777,21 @@ def fit_lens(
       whole-frame fit's; the standard errors are those of the pixels used. `FitResult.tiles`
       lists the tiles (`(row, column, height, width)`, photo pixels), `FitResult.levels` is 2
       with a scout; `jaxdof/_fit/tiles.py` has the method.
+
+    - `edge_weight`: the fit weight that ramps to 0 towards depth edges (`jaxdof.edge_weight`,
+      multiplied into `weight`): `None` (default) decides (see *Treatment*), `False` off, `True`
+      on with the automatic width, a number: on with that width (photo pixels).
+
+    **Treatment.** By default the fit inspects the depth map and the `init` lens and turns on
+    only what the scene needs (`jaxdof/_fit/treatment.py` has the rules and their figures): where
+    depth edges with circles over half a pixel touch more than 0.5 % of the fitted pixels, the
+    occlusion-aware render (`method="occlusion"`) and the edge weight (width: the largest starting
+    circle on those edges plus a pixel; dropped where it would leave under 30 % of the weight);
+    where the starting lens's median circle is under 5.8 px, the footprint correction (else `K`
+    comes out short by about `1 / (6 r^2)`); and always the border. `method`, `footprint` and
+    `edge_weight` force a choice; `FitResult.treatment` reports every choice and which were
+    forced. A `model` of your own is fitted as it is (no edge weight unless `edge_weight` asks;
+    `model=jaxdof.DefocusModel()` fits exactly `jaxdof.render`'s default).
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `status` (a
     `jaxdof.RESULTS` member) and `message`, when the best start did not converge, when distinct
@@ -822,6 +841,7 @@ def fit_lens(
     given = dict(locals())  # the call, to refit on tiles chosen for a larger window
     forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)
     free, shared = _check_names(free, shared)
+    check_edge_weight(edge_weight)
     check_differentiable(forward)
     if not is_concrete(image, depth, targets, init, weight):
         raise ValueError(
@@ -831,6 +851,7 @@ def fit_lens(
     max_steps, n_starts = _check_options(max_steps, starts, verbose, max_radius, free)
     band = check_border(border)
     p = prepare_problem(image, depth, targets, init, weight, forward, free, shared, exposure)
+    p, forward, treatment = treat_scene(p, forward, model, method, footprint, edge_weight)
     p_full_pixels = int(p.photo[0] * p.photo[1])
     levels = _check_pyramid(pyramid, p.photo)
     solver, coarse_solver = _solvers(solver, p.dtype, verbose)
@@ -865,8 +886,13 @@ def fit_lens(
         result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single, used)
         info.update(jax.device_get(stats))
     except _SOLVER_ERRORS as err:
-        return _failed(run, err, window)
-    result = dataclasses.replace(result, border=used)
+        failed = _failed(run, err, window)
+        return dataclasses.replace(
+            failed, treatment=dataclasses.replace(treatment, border=failed.border)
+        )
+    result = dataclasses.replace(
+        result, border=used, treatment=dataclasses.replace(treatment, border=used)
+    )
     if chosen is not None:
         if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
             return fit_lens(**{**given, "max_radius": window, "tiles": budget})

@@ -12,6 +12,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._lens import ThinLens
 from .layout import ALL_FIELDS, LENS_FIELDS
+from .treatment import Treatment
 
 
 _UNITS = {"focal_length": "m", "f_number": "", "focus_distance": "m", "gain": "", "offset": ""}
@@ -219,6 +220,9 @@ class FitResult(eqx.Module):
     - `levels`: pyramid levels `fit_lens` solved on (1: full resolution only; see its `pyramid`).
     - `tiles`: the photo tiles fitted, `(row, column, height, width)` of each (photo pixels), when
       `fit_lens` fitted on informative tiles (see its `tiles`); `()`: the whole frame.
+    - `treatment`: what `fit_lens` chose to model and leave out for this scene (occlusion, edge
+      weight, footprint, border; a `jaxdof.Treatment`, `str()` says it in words); `None` from
+      `solve_lens`, which models what it is given.
 
     `message` is the status's message and the notes; `stderr_kind` says what the standard errors
     measure (`"noise"`, or `"tile spread"` when inflated); `lens` is the first target's lens;
@@ -246,6 +250,7 @@ class FitResult(eqx.Module):
     border: int = eqx.field(static=True, default=0)
     levels: int = eqx.field(static=True, default=1)
     tiles: tuple[tuple[int, int, int, int], ...] = eqx.field(static=True, default=())
+    treatment: Treatment | None = eqx.field(static=True, default=None)
 
     @property
     def lens(self) -> ThinLens:
@@ -336,7 +341,8 @@ class FitResult(eqx.Module):
         `pixel_pitch`, m) and its `stderr` (free fields only); `lenses`, one dict per target with
         its own `stderr`, `focus_power` (diopters) and `focus_power_stderr`; `success`, `status`
         (the `RESULTS` member's name), `message`, `steps`, `loss`, `sigma`, `condition`,
-        `max_radius` (px), `pixels_used`, `border` (px), `levels`, `tiles`, `adequacy` (the test's
+        `max_radius` (px), `pixels_used`, `border` (px), `levels`, `tiles`, `treatment` (`Treatment.to_dict()`, with `text` the
+        words; `None` from `solve_lens`), `adequacy` (the test's
         numbers, `adequate` a bool), `stderr_kind`, `names`, `covariance` (rows
         and columns in the order of `names`), `gain` and `offset` (per target). Numbers are the
         shortest decimals that round-trip the arrays' precision; NaN and inf become `None`.
@@ -372,6 +378,7 @@ class FitResult(eqx.Module):
             "border": int(self.border),
             "levels": int(self.levels),
             "tiles": [list(box) for box in self.tiles],
+            "treatment": None if self.treatment is None else self.treatment.to_dict(),
             "adequacy": {
                 k: bool(v) if k == "adequate" else _json_float(v) for k, v in self.adequacy.items()
             },

@@ -1,0 +1,244 @@
+r"""The fit's treatment of the scene, chosen from the scene and the starting lens (issue 21).
+
+A photo differs from the thin-lens render of its all-in-focus image in three places, each with a
+treatment that `fit_lens` turns on only where the scene needs it, by a measured rule
+(`jaxdof/_tuning.py`, `fits/treatments.py`):
+
+- **Depth edges that matter.** Within a circle of an occlusion edge a real aperture sees around the
+  foreground (hidden background behind a sharp foreground, a semi-transparent blurred one), which
+  an image with one depth per pixel lacks. An edge *matters* when a pixel on it
+  (`jaxdof.depth_edges`: a relative depth step over 3 % between 4-neighbours, so a floor or a
+  slanted wall is no edge) or a neighbour has a circle over half a pixel at the starting lens: below that the
+  render copies the pixel (the dead zone) and no light crosses the edge. When such edges touch more
+  than `EDGE_MIN_SHARE` of the fitted pixels (within the circle of one of them), the forward model
+  renders occlusion (`method="occlusion"`), and the fit weight ramps to 0 towards them
+  (`jaxdof.edge_weight` with the width of the largest starting circle on them, plus a pixel) unless
+  that would leave less than `EDGE_KEEP_MIN` of the weight, where the edges are the scene.
+- **Small circles.** Spreading a pinhole pixel (itself a box average) with the circle-pixel
+  overlap adds one pixel footprint too many, a blur variance of `1/6 px^2` against the lens's
+  `r^2 / 2` (both axes), so `K` comes out short by about `1 / (6 r^2)` (relative): 1.9 % at
+  `r = 3`, 0.5 % at 5.8 px. The footprint correction (`jaxdof.footprint_prefilter`) is on when
+  the starting lens's median circle over the fitted pixels is under `FOOTPRINT_BELOW` px.
+- **The border** is always left out (`fit_lens`'s `border`, decided with the window).
+
+Each choice can be forced (`fit_lens(method=..., footprint=..., edge_weight=...)`); a forced
+choice is reported as such. `Treatment` is what `FitResult.treatment` holds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from scipy import ndimage
+
+from .._corrections import depth_edges, edge_distance_to
+from .._filters import as_method
+from .._filters.occlusion import DEFAULT_JUMP
+from .forward import AbstractForwardModel, DefocusModel
+from .prepare import Problem
+
+
+# The rules' thresholds (measured on the tuning half of the ray-traced scenes; figures in
+# `fits/results/treatments.md`).
+#: A starting circle (px) under which the extra pixel footprint biases `K` by over 0.5 %.
+FOOTPRINT_BELOW = 5.8
+#: The share of the fitted pixels within reach of an edge that matters above which the fit
+#: treats occlusion (fewer: the few edge pixels cannot bias the lens beyond its noise).
+EDGE_MIN_SHARE = 0.005
+#: The edge weight is used only while it keeps this share of the fitted weight.
+EDGE_KEEP_MIN = 0.3
+#: A circle (px) that spreads light off its pixel: the dead zone's edge.
+_DEAD_ZONE = 0.5
+#: The default model's method where occlusion matters.
+OCCLUSION_METHOD = "occlusion"
+
+
+@dataclasses.dataclass(frozen=True)
+class Treatment:
+    """What `fit_lens` did to the scene, and why (`FitResult.treatment`).
+
+    - `method`: the default forward model's filter method (`"soft"`, `"occlusion"`, or the
+      caller's); `"model"` for a caller's forward model.
+    - `occlusion`: the forward model renders occlusion at depth edges.
+    - `edge_pixels`: depth-edge pixels whose starting circle exceeds half a pixel (image grid).
+    - `edge_share`: the share of the fitted pixels within a starting circle of such an edge.
+    - `edge_weight`: the width (px) of the edge weight's ramp; 0 when off.
+    - `footprint`: the pixel-footprint correction is on.
+    - `median_circle`: the starting lens's median circle over the fitted pixels (photo px).
+    - `border`: the band along the frame's edges left out (photo px; set after the fit).
+    - `forced`: the choices the caller made (`"occlusion"`, `"footprint"`, `"edge_weight"`);
+      the rest were chosen by the rules above.
+    """
+
+    method: str = "soft"
+    occlusion: bool = False
+    edge_pixels: int = 0
+    edge_share: float = 0.0
+    edge_weight: float = 0.0
+    footprint: bool = False
+    median_circle: float = 0.0
+    border: int = 0
+    forced: tuple[str, ...] = ()
+
+    def __str__(self) -> str:
+        parts = []
+        if self.occlusion:
+            parts.append(f"occlusion ({self.edge_pixels} edge pixels)")
+        if self.edge_weight > 0:
+            parts.append(f"edge weight {self.edge_weight:.3g} px")
+        if self.footprint:
+            parts.append("footprint")
+        parts.append(f"border {self.border} px")
+        text = ", ".join(parts)
+        return f"{text} (forced: {', '.join(self.forced)})" if self.forced else text
+
+    def to_dict(self) -> dict:
+        return {**dataclasses.asdict(self), "forced": list(self.forced), "text": str(self)}
+
+
+def start_circles(lens_rows: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """The largest circle (pixels of the lens's pitch) over lens rows `(T, 4)` of
+    `(f, N, d_f, pitch)` at every pixel of `depth` (float32; focus at infinity included, as
+    `forward.max_circle`)."""
+    inv_d = 1 / np.asarray(depth, np.float32)
+    out = np.zeros(inv_d.shape, np.float32)
+    for f, n, d_f, pitch in np.asarray(lens_rows, np.float64).reshape(-1, 4):
+        u = 0.0 if math.isinf(d_f) else 1.0 / d_f
+        c = f * f / (2 * n * pitch) / (1 - f * u)
+        out = np.maximum(out, np.abs(np.float32(c) * (np.float32(u) - inv_d)))
+    return out
+
+
+def check_edge_weight(edge_weight) -> None:
+    """`fit_lens(edge_weight=...)`: `None`, a bool or a positive width in pixels."""
+    if edge_weight is None or isinstance(edge_weight, bool):
+        return
+    if not (
+        isinstance(edge_weight, (int, float)) and math.isfinite(edge_weight) and edge_weight > 0
+    ):
+        raise ValueError(
+            f"edge_weight must be None (decide), True, False or a width > 0 in photo pixels, "
+            f"got {edge_weight!r}"
+        )
+
+
+def treat_scene(
+    p: Problem, forward: AbstractForwardModel, model, method, footprint, edge_weight
+) -> tuple[Problem, AbstractForwardModel, Treatment]:
+    """`fit_lens`'s treatment: the problem with the edge weight multiplied in, the forward model
+    (the default one with the chosen method and footprint; a caller's `model` as it is) and the
+    `Treatment` that says what was chosen."""
+    if model is None:
+        occlusion = None if method is None else bool(as_method(method).uses_depth)
+    else:
+        # The caller's model is what it is: nothing chosen here, the edge weight only if asked.
+        occlusion, footprint = False, False
+        edge_weight = False if edge_weight is None else edge_weight
+    w = p.sqrt_w
+    fitted = np.any(w > 0, axis=(0, 3)) if w.ndim == 4 else np.any(w > 0, axis=0)
+    treatment, weight = choose_treatment(
+        p.depth,
+        p.b,
+        fitted,
+        p.ratio,
+        occlusion=occlusion,
+        footprint=footprint,
+        edge_weight=edge_weight,
+    )
+    if model is None:
+        chosen = (
+            method if method is not None else (OCCLUSION_METHOD if treatment.occlusion else "soft")
+        )
+        forward = DefocusModel(
+            method=chosen, footprint=treatment.footprint, downsample=forward.downsample
+        )
+        name = chosen if isinstance(chosen, str) else type(chosen).__name__
+        treatment = dataclasses.replace(treatment, method=name)
+    else:
+        uses_depth = isinstance(model, DefocusModel) and as_method(model.method).uses_depth
+        treatment = dataclasses.replace(
+            treatment,
+            method="model",
+            occlusion=bool(uses_depth),
+            footprint=bool(getattr(model, "footprint", False)),
+            forced=("model",) + (("edge_weight",) if treatment.edge_weight else ()),
+        )
+    if weight is not None:
+        s = p.ratio
+        h, wd = fitted.shape
+        on_photo = weight.reshape(h, s, wd, s).min(axis=(1, 3))  # the photo pixel's worst
+        root = np.sqrt(on_photo).astype(p.dtype)
+        sqrt_w = p.sqrt_w * (root[None, ..., None] if w.ndim == 4 else root[None])
+        if not np.any(sqrt_w > 0):
+            raise ValueError(
+                f"edge_weight={edge_weight!r} leaves no photo pixel with weight: every fitted "
+                "pixel is near a depth edge; use a smaller width or edge_weight=False"
+            )
+        p = dataclasses.replace(p, sqrt_w=sqrt_w)
+    return p, forward, treatment
+
+
+def choose_treatment(
+    depth: np.ndarray,
+    init_rows: np.ndarray,
+    fitted: np.ndarray,
+    ratio: int,
+    *,
+    occlusion: bool | None,
+    footprint: bool | None,
+    edge_weight: bool | float | None,
+) -> tuple[Treatment, np.ndarray | None]:
+    """The treatment of a scene and the edge weight on the image grid (`None`: no edge weight).
+
+    **Arguments:**
+
+    - `depth`: z-depth `(H, W)` of the image (m).
+    - `init_rows`: the starting lens per target, `(T, 4)` of `(f, N, d_f, pitch)`, the pitch of
+      the photo's pixels; a pixel's circle is the largest over the targets.
+    - `fitted`: `(H / ratio, W / ratio)` bool, the photo pixels with weight (before the border).
+    - `ratio`: the image's pixels per photo pixel along an axis (`downsample`).
+    - `occlusion`, `footprint`, `edge_weight`: the caller's forced choices, `None` to decide
+      (`edge_weight` may be a width in photo px).
+    """
+    forced = tuple(
+        name
+        for name, v in (
+            ("occlusion", occlusion),
+            ("footprint", footprint),
+            ("edge_weight", edge_weight),
+        )
+        if v is not None
+    )
+    r = start_circles(init_rows, depth) * ratio  # image pixels
+    fitted_img = np.repeat(np.repeat(fitted, ratio, 0), ratio, 1)
+    median = float(np.median(r[fitted_img])) / ratio if fitted_img.any() else 0.0
+    # An edge pixel matters when it or a neighbour across the edge spreads light off its pixel.
+    blurred = ndimage.maximum_filter(r, size=3) > _DEAD_ZONE * ratio
+    edges = depth_edges(depth, jump=DEFAULT_JUMP) & blurred
+    n_edges = int(edges.sum())
+    reach = float(ndimage.maximum_filter(r, size=3)[edges].max()) + 1.0 if n_edges else 0.0
+    dist = edge_distance_to(edges, limit=max(reach, 1.0))
+    near = dist < reach
+    share = float(np.mean(near[fitted_img])) if fitted_img.any() else 0.0
+    matters = share > EDGE_MIN_SHARE
+    weight = None
+    width = 0.0
+    want_weight = matters if edge_weight is None else bool(edge_weight)
+    if want_weight and n_edges:
+        width = reach if edge_weight in (None, True) else float(edge_weight) * ratio
+        weight = np.clip(edge_distance_to(edges, limit=width) / width, 0.0, 1.0) ** 2
+        kept = float(np.mean(weight[fitted_img])) if fitted_img.any() else 0.0
+        if edge_weight is None and kept < EDGE_KEEP_MIN:
+            weight, width = None, 0.0
+    treatment = Treatment(
+        occlusion=matters if occlusion is None else bool(occlusion),
+        edge_pixels=n_edges,
+        edge_share=share,
+        edge_weight=width / ratio,
+        footprint=(median < FOOTPRINT_BELOW) if footprint is None else bool(footprint),
+        median_circle=median,
+        forced=forced,
+    )
+    return treatment, weight

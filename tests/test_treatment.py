@@ -1,0 +1,147 @@
+"""`fit_lens`'s automatic treatment of the scene (`jaxdof/_fit/treatment.py`): which rule turns on
+what, that each choice can be forced, and that the result and the CLI report it."""
+
+import math
+
+import numpy as np
+import pytest
+
+import jaxdof
+from jaxdof._fit.treatment import (
+    EDGE_KEEP_MIN,
+    FOOTPRINT_BELOW,
+    Treatment,
+    choose_treatment,
+    start_circles,
+)
+
+
+PITCH = 1e-5
+
+
+def _lens(f_number: float, focus: float) -> np.ndarray:
+    return np.array([[0.05, f_number, focus, PITCH]])
+
+
+def _step(h: int = 48, w: int = 48, near: float = 1.5, far: float = 4.0) -> np.ndarray:
+    """A near plane on the left half, a far one on the right: one vertical depth edge."""
+    z = np.full((h, w), far)
+    z[:, : w // 2] = near
+    return z
+
+
+def _floor(h: int = 48, w: int = 48) -> np.ndarray:
+    """A receding floor: depth grows smoothly down the rows (no 3 % step between neighbours)."""
+    return np.repeat(np.linspace(1.5, 2.5, h)[:, None], w, axis=1)
+
+
+def _choose(depth, rows, **forced):
+    fitted = np.ones(depth.shape, bool)
+    opts = dict(occlusion=None, footprint=None, edge_weight=None) | forced
+    return choose_treatment(depth, rows, fitted, 1, **opts)
+
+
+def test_start_circles_match_coc_radius():
+    z = np.array([[1.0, 2.0, np.inf]])
+    for focus in (1.8, math.inf):
+        lens = jaxdof.ThinLens(0.05, 2.0, focus, PITCH)
+        want = np.asarray(jaxdof.coc_radius(z, lens), np.float64)
+        got = start_circles(_lens(2.0, focus), z)
+        np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_a_scene_without_depth_edges_gets_neither_occlusion_nor_edge_weight():
+    t, weight = _choose(_floor(), _lens(2.0, 2.0))
+    assert (t.occlusion, t.edge_pixels, t.edge_weight, weight) == (False, 0, 0.0, None)
+
+
+def test_a_depth_edge_with_blur_turns_on_occlusion_and_the_edge_weight():
+    z = _step()
+    rows = _lens(16.0, 1.5)  # the near plane sharp, the far one blurred
+    r_far = float(start_circles(rows, np.array([4.0]))[0])
+    assert 3 < r_far < 4
+    t, weight = _choose(z, rows)
+    assert t.occlusion and t.edge_pixels == 2 * z.shape[0]
+    assert t.edge_weight == pytest.approx(r_far + 1.0, rel=1e-5)
+    # the weight ramps from 0 on the edge to 1 one width away
+    assert weight[0, 23] == 0 and weight[0, 24] == 0
+    assert 0 < weight[0, 25] < weight[0, 26] < 1
+    assert weight[0, 24 + math.ceil(t.edge_weight)] == 1 and weight[0, 0] == 1
+    assert "occlusion (96 edge pixels)" in str(t)
+
+
+def test_an_edge_in_the_dead_zone_does_not_matter():
+    # f/128 focused between the planes: every circle under half a pixel
+    rows = _lens(128.0, 2.0)
+    assert start_circles(rows, _step()).max() < 0.5
+    t, weight = _choose(_step(), rows)
+    assert not t.occlusion and t.edge_pixels == 0 and weight is None
+
+
+def test_footprint_follows_the_median_circle():
+    z = _floor()
+    small = _choose(z, _lens(4.0, 2.0))[0]
+    assert small.median_circle < FOOTPRINT_BELOW and small.footprint
+    large = _choose(z, _lens(1.0, 0.5))[0]
+    assert large.median_circle > FOOTPRINT_BELOW and not large.footprint
+
+
+def test_the_edge_weight_is_dropped_where_the_edges_are_the_scene():
+    # stripes of alternating depth every 4 px: the edge weight would leave almost nothing
+    z = np.where((np.arange(48) // 4) % 2 == 0, 1.5, 4.0)[None, :].repeat(48, 0)
+    t, weight = _choose(z, _lens(8.0, 1.5))
+    assert t.occlusion and weight is None and t.edge_weight == 0
+    forced, w = _choose(z, _lens(8.0, 1.5), edge_weight=True)
+    assert w is not None and w.mean() < EDGE_KEEP_MIN and forced.forced == ("edge_weight",)
+
+
+def test_every_choice_can_be_forced():
+    t, weight = _choose(_step(), _lens(8.0, 1.5), occlusion=False, footprint=False, edge_weight=3.0)
+    assert not t.occlusion and not t.footprint and t.edge_weight == 3.0
+    assert t.forced == ("occlusion", "footprint", "edge_weight")
+    assert "(forced: occlusion, footprint, edge_weight)" in str(t)
+
+
+def _scene(h: int = 40, w: int = 40):
+    """A texture on a plane slanted from 1 to 3 m, with a card at 1.2 m in one quadrant."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.2, 0.8, (h, w)).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    depth = np.where((yy < h // 3) & (xx > w // 2), 1.2, 1.0 + 2.0 * xx / (w - 1))
+    return image, depth.astype(np.float32)
+
+
+def rel_err(fit, true):
+    return [
+        abs(float(getattr(fit, n)) / float(getattr(true, n)) - 1)
+        for n in ("f_number", "focus_distance")
+    ]
+
+
+def test_fit_lens_reports_and_obeys_its_treatment():
+    image, depth = _scene()
+    truth = jaxdof.ThinLens(0.05, 16.0, 1.6, PITCH)  # circles up to 3 px
+    photo = jaxdof.render(image, depth, truth, method="occlusion", footprint=True)
+    init = jaxdof.ThinLens(0.05, 20.0, 1.4, PITCH)
+    auto = jaxdof.fit_lens(image, depth, photo, init, starts=1)
+    assert isinstance(auto.treatment, Treatment)
+    assert auto.treatment.method == "occlusion" and auto.treatment.edge_weight > 0
+    assert auto.treatment.footprint and bool(auto.success), auto.message
+    err = rel_err(auto.lens, truth)
+    assert max(err) < 1e-3, err
+    assert auto.treatment.border == auto.border and auto.treatment.forced == ()
+    assert auto.to_dict()["treatment"]["text"] == str(auto.treatment)
+    forced = jaxdof.fit_lens(
+        image, depth, photo, init, starts=1, method="soft", footprint=False, edge_weight=False
+    )
+    t = forced.treatment
+    assert (t.method, t.footprint, t.edge_weight) == ("soft", False, 0.0)
+    assert int(forced.pixels_used) > int(auto.pixels_used)  # no pixel weighted out near the edge
+
+
+def test_fit_lens_refuses_a_bad_edge_weight():
+    image, depth = _scene()
+    lens = jaxdof.ThinLens(0.05, 2.0, 1.5, PITCH)
+    for bad in (0.0, -1.0, math.inf):
+        with pytest.raises(ValueError, match="edge_weight"):
+            jaxdof.fit_lens(image, depth, image, lens, edge_weight=bad)
