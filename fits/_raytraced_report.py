@@ -720,7 +720,7 @@ SCENE_TEXT = {
     "thin": "thin structures: six poles (1.8-5 px wide) at 1.25-2.5 m and three slanted branches "
     "(1.5-2.3 px) on a floor before a wall at 5 m",
     "fgbg": "a card at 1.8 m over 40 % of the frame (a vertical and a diagonal edge) before a "
-    "wall at 6 m; two lenses focused on the card (a sharp foreground over a blurred background), "
+    "wall turned 40 deg (z 4.2-10.5 m); two lenses focused on the card (a sharp foreground over a blurred background), "
     "two on the wall (the reverse)",
     "texture": "one plane (z 1.9-3.6 m, no depth edge) with a texture near the sampling limit "
     "(detail of 2-3 px period, 32 % of the power above 0.25 cycles/px)",

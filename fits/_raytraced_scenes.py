@@ -560,7 +560,9 @@ def thin_shapes(mi) -> dict:
 
 
 def fgbg_shapes(mi) -> dict:
-    """`fgbg`: a card at 1.8 m before a wall at 6 m. The card covers 40 % of the frame, from the
+    """`fgbg`: a card at 1.8 m before a wall through 6 m, turned 40 deg about y (z 4.2-10.5 m
+    across the frame: a focus on the card or the wall still leaves circles that change with
+    depth, so the lens is determined). The card covers 40 % of the frame, from the
     left and bottom borders to a vertical edge at column 72 (row 62 down) and a diagonal edge (35
     deg) from row 12 at the left border to row 62 at column 72: a parallelogram, the rectangle
     sheared in its plane. Focused on either, a sharp foreground before a blurred background or
@@ -580,7 +582,7 @@ def fgbg_shapes(mi) -> dict:
     k = 2 / TEXTURE_PERIOD
     uv = [[k * sx, 0, 0], [-k * slope * sx, k * sy, 0], [0, 0, 1]]
     card["emitter"]["radiance"]["to_uv"] = mi.ScalarTransform3f(uv)
-    return {"card": card, "wall": _card(mi, 0.0, 0.0, 6.0, 6 * t, 6 * t, 72)}
+    return {"card": card, "wall": _card(mi, 0.0, 0.0, 6.0, 6.0, 11 * t, 72, rot_y=40.0)}
 
 
 def texture_shapes(mi) -> dict:

@@ -64,6 +64,9 @@ def edge_distance(depth: ArrayLike, *, jump: float = 0.03, limit: float = 64.0) 
     return edge_distance_to(depth_edges(depth, jump=jump), limit=limit)
 
 
+_EDT_BAND_PIXELS = 2**22  # pixels per band of the distance transform
+
+
 def edge_distance_to(edges: np.ndarray, *, limit: float) -> np.ndarray:
     """Euclidean distance (px, pixel centre to pixel centre) from every pixel to the nearest `True`
     pixel of the `(H, W)` mask `edges`, capped at `limit`; float32.
@@ -72,10 +75,20 @@ def edge_distance_to(edges: np.ndarray, *, limit: float) -> np.ndarray:
     the pixels whatever the number of edge pixels.
     """
     edges = np.asarray(edges, bool)
+    out = np.full(edges.shape, float(limit), np.float32)
     if not edges.any():
-        return np.full(edges.shape, float(limit), np.float32)
-    dist = ndimage.distance_transform_edt(~edges).astype(np.float32)
-    return np.minimum(dist, np.float32(limit))
+        return out
+    # In bands of rows with a halo of `limit` rows (distances beyond it are capped anyway), so
+    # that the transform's float64 and index temporaries stay small on a large frame.
+    halo = int(math.ceil(limit))
+    step = max(_EDT_BAND_PIXELS // max(edges.shape[1], 1), 1)
+    for top in range(0, edges.shape[0], step):
+        lo, hi = max(top - halo, 0), min(top + step + halo, edges.shape[0])
+        band = edges[lo:hi]
+        if band.any():
+            dist = np.asarray(ndimage.distance_transform_edt(~band))[top - lo : top - lo + step]
+            out[top : top + step] = np.minimum(dist, limit)
+    return out
 
 
 def edge_weight(depth: ArrayLike, *, width: float, jump: float = 0.03) -> np.ndarray:

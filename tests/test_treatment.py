@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jaxdof
+from jaxdof import _corrections
 from jaxdof._fit.treatment import (
     EDGE_KEEP_MIN,
     FOOTPRINT_BELOW,
@@ -14,6 +15,7 @@ from jaxdof._fit.treatment import (
     choose_treatment,
     start_circles,
 )
+from jaxdof.internal import LocalOcclusion
 
 
 PITCH = 1e-5
@@ -121,11 +123,11 @@ def rel_err(fit, true):
 def test_fit_lens_reports_and_obeys_its_treatment():
     image, depth = _scene()
     truth = jaxdof.ThinLens(0.05, 16.0, 1.6, PITCH)  # circles up to 3 px
-    photo = jaxdof.render(image, depth, truth, method="occlusion", footprint=True)
+    photo = jaxdof.render(image, depth, truth, method=LocalOcclusion(), footprint=True)
     init = jaxdof.ThinLens(0.05, 20.0, 1.4, PITCH)
     auto = jaxdof.fit_lens(image, depth, photo, init, starts=1)
     assert isinstance(auto.treatment, Treatment)
-    assert auto.treatment.method == "occlusion" and auto.treatment.edge_weight > 0
+    assert auto.treatment.method == "LocalOcclusion" and auto.treatment.edge_weight > 0
     assert auto.treatment.footprint and bool(auto.success), auto.message
     err = rel_err(auto.lens, truth)
     assert max(err) < 1e-3, err
@@ -145,3 +147,16 @@ def test_fit_lens_refuses_a_bad_edge_weight():
     for bad in (0.0, -1.0, math.inf):
         with pytest.raises(ValueError, match="edge_weight"):
             jaxdof.fit_lens(image, depth, image, lens, edge_weight=bad)
+
+
+def test_edge_distance_in_bands_is_the_whole_frames(monkeypatch):
+    rng = np.random.default_rng(0)
+    edges = rng.uniform(size=(120, 50)) < 0.003
+    whole = _corrections.edge_distance_to(edges, limit=9.0)
+    monkeypatch.setattr(_corrections, "_EDT_BAND_PIXELS", 50 * 7)  # bands of 7 rows
+    np.testing.assert_array_equal(_corrections.edge_distance_to(edges, limit=9.0), whole)
+    brute = np.full(edges.shape, 9.0)
+    for y, x in zip(*np.nonzero(edges)):
+        yy, xx = np.mgrid[0:120, 0:50]
+        brute = np.minimum(brute, np.hypot(yy - y, xx - x))
+    np.testing.assert_allclose(whole, brute, rtol=1e-6)

@@ -31,10 +31,10 @@ What is here (re-exports only):
   `kernel_variance` (the filter kernel's variance, under `jaxdof.footprint_prefilter`), and the
   study-only candidates that lost to `footprint_prefilter` against ray tracing
   (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
-- **Experimental methods**: `LocalOcclusion`, occlusion decided per pair of pixels against the
-  receiver's extrapolated surface (no hidden-background fill); measured against ray tracing in
-  `fits/results/occlusion_local.md`, where it does not beat `jaxdof.Occlusion` (issue 21's
-  candidate, not a built-in).
+- **Local occlusion**: `LocalOcclusion`, occlusion decided per pair of pixels against the
+  receiver's extrapolated surface, with the hidden surfaces filled: the forward model `fit_lens`
+  chooses where depth edges matter (`jaxdof/_fit/treatment.py`); measured against ray tracing
+  and `jaxdof.Occlusion` in `fits/results/occlusion_local.md` (not yet a `method=` alias).
 - **Memory**: `estimate_memory` (a render's), `estimate_fit_memory` (a fit's; the CLI's
   `fit --memory`).
 - **Files**: `read_image` and `write_image`, the CLI's readers and writers (linear light;
