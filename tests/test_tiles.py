@@ -7,6 +7,7 @@ import pytest
 import jaxdof
 from jaxdof._fit import tiles as T
 from jaxdof._fit.prepare import prepare_problem
+from jaxdof.internal import LocalOcclusion
 
 from .helpers import EXACT
 
@@ -70,11 +71,19 @@ def test_choice_follows_information_and_avoids_depth_edges():
     rows = np.asarray(p.b)[None]
     # Candidates: rows 4, 36, 68 x columns 4, 36, 68 (32 px, halo 4); of these (4, 68) and
     # (36, 68) lie wholly in the weighted half and clear of the step.
-    chosen = T.choose_tiles(p, model, 4.0, 2 * 32 * 32, lambda: T.pixel_information(p, model, rows))
-    assert chosen is not None and len(chosen.corners) == 2
-    for r, c in chosen.corners:
-        assert c >= S // 2  # where the weights are
-        assert r + 32 + chosen.halo <= 96  # clear of the depth step
+    # A model that renders occlusion avoids the edge too (it guesses the hidden surfaces), and then
+    # the tiles hold no edge: `fit_lens` fits them with the soft filter.
+    occluding = jaxdof.DefocusModel(method=LocalOcclusion())
+    for m in (model, occluding):
+        info = lambda m=m: T.pixel_information(p, m, rows)  # noqa: E731
+        chosen = T.choose_tiles(p, m, 4.0, 2 * 32 * 32, info)
+        assert chosen is not None and len(chosen.corners) == 2
+        for r, c in chosen.corners:
+            assert c >= S // 2  # where the weights are
+            assert r + 32 + chosen.halo <= 96  # clear of the depth step
+        assert T.edge_free(p, chosen)
+    across = T.Tiles(((68, 68), (4, 68)), 32, chosen.halo, (S, S))  # the first crop holds row 96
+    assert not T.edge_free(p, across)
 
 
 class _Stages:

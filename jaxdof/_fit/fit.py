@@ -52,6 +52,7 @@ from .strategies import (
 from .tiles import (
     Tiles,
     choose_tiles,
+    edge_free,
     fits_tiles,
     jacobian_information,
     pixel_information,
@@ -882,6 +883,12 @@ def fit_lens(
             y0s, rows = _coarse_to_fine(run, rows0, window)
         else:
             run, y0s, rows, chosen = _on_tiles(run, rows0, window, budget, levels)
+            if treatment.occlusion and model is None and method is None and edge_free(p, chosen):
+                # No edge in the tiles: nothing there for the occlusion render to do.
+                run = dataclasses.replace(
+                    run, forward=dataclasses.replace(run.forward, method="soft")
+                )
+                treatment = dataclasses.replace(treatment, occlusion=False, method="soft")
             p = run.problem
         model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
             run, y0s, rows, window

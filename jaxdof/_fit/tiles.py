@@ -16,8 +16,10 @@ with the parameters), and the cost of a fit grows with the pixels rendered. For 
    twice the halo where that is more) inside the band
    that light from outside the frame reaches (each tile with its halo must lie in the frame).
    A tile whose crop (interior and halo) holds a depth edge (`jaxdof.depth_edges`) is left out
-   unless the forward model renders occlusion (`method.uses_depth`): the soft model cannot
-   explain light blocked at an edge, and those pixels bias the lens. From the rest the tiles are
+   while enough others remain, whatever the forward model: a post-process model explains light
+   blocked at an edge only approximately (the hidden surfaces are guessed), and those pixels bias
+   the lens; with no edge in the tiles `fit_lens` fits them without its occlusion treatment
+   (the soft filter, 2-3x cheaper). From the rest the tiles are
    picked greedily for D-optimality: each step adds the tile that most increases
    `log det(M + I_k)`, `M` the information chosen so far (plus a ridge of `1e-9` of the
    candidates' mean trace, so that the first tiles fill the directions one by one). This favours
@@ -268,21 +270,29 @@ def choose_tiles(
     cq = np.minimum(starts_c // q, wq - k)
     cand = _box_sums(info, k, rq, cq) * (side * side / (k * k))  # (nr, nc, P, P)
     usable = np.ones(cand.shape[:2], bool)
-    method = getattr(forward, "method", None)
-    if not getattr(method, "uses_depth", False):
-        edges = depth_edges(p.depth)
-        s = p.ratio
-        crop = (side + 2 * halo) * s
-        # int32 counts: a 24 MP frame's integral image in 96 MB, not float64's 192 MB per copy
-        n_edge = _box_sums(edges, crop, (starts_r - halo) * s, (starts_c - halo) * s, np.int32)
-        if np.sum(n_edge == 0) >= want:
-            usable = n_edge == 0
+    edges = depth_edges(p.depth)
+    s = p.ratio
+    crop = (side + 2 * halo) * s
+    # int32 counts: a 24 MP frame's integral image in 96 MB, not float64's 192 MB per copy
+    n_edge = _box_sums(edges, crop, (starts_r - halo) * s, (starts_c - halo) * s, np.int32)
+    if np.sum(n_edge == 0) >= want:
+        usable = n_edge == 0
     corners = [(int(r), int(c)) for r in starts_r for c in starts_c]
     mats = cand.reshape(-1, *cand.shape[2:])
     keep = usable.reshape(-1)
     chosen = _greedy_d_optimal(mats, keep, want)
     picked = sorted(corners[i] for i in chosen)
     return Tiles(tuple(picked), side, halo, (int(p.photo[0]), int(p.photo[1])))
+
+
+def edge_free(p, chosen: Tiles) -> bool:
+    """Whether no chosen tile's crop (interior and halo) holds a depth edge."""
+    s, crop = p.ratio, (chosen.side + 2 * chosen.halo) * p.ratio
+    for r, c in chosen.corners:
+        r0, c0 = (r - chosen.halo) * s, (c - chosen.halo) * s
+        if depth_edges(p.depth[r0 : r0 + crop, c0 : c0 + crop]).any():
+            return False
+    return True
 
 
 def _greedy_d_optimal(mats: np.ndarray, keep: np.ndarray, want: int) -> list[int]:
