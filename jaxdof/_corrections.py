@@ -150,7 +150,7 @@ def _chord_area_jvp(primals, tangents):
 _VARIANCE_COLUMNS = 24
 
 
-def kernel_variance(radius: ArrayLike, max_radius: float | None = None) -> jax.Array:
+def kernel_variance(radius: ArrayLike, *, max_radius: float | None = None) -> jax.Array:
     r"""Per-axis variance (px^2) of `jaxdof.coc_filter`'s discrete kernel `overlap(o, r) / (pi r^2)`.
 
     **Arguments:** `radius` (px), any shape, `>= 0`; `max_radius` (static, optional): a bound on
@@ -186,7 +186,7 @@ def kernel_variance(radius: ArrayLike, max_radius: float | None = None) -> jax.A
 
 
 def footprint_prefilter(
-    image: ImageLike, radius: RadiusLike, max_radius: float | None = None
+    image: ImageLike, radius: RadiusLike, *, max_radius: float | None = None
 ) -> Image:
     r"""Correct an all-in-focus image for the pixel footprint, pixel by pixel for its own circle.
 
@@ -232,7 +232,7 @@ def footprint_prefilter(
             "pass coc_radius(depth, lens) for the image's depth map"
         )
     r = r.astype(x.dtype)
-    c = (kernel_variance(r, max_radius) - r * r / 4) / 2
+    c = (kernel_variance(r, max_radius=max_radius) - r * r / 4) / 2
     if x.ndim == 3:
         c = c[..., None]
     return x - c * lap

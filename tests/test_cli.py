@@ -200,7 +200,9 @@ def fit_run(files):
     d, hashes, _, _ = files
     start = ["--focal-length", "85mm", "--f-number", "4", "--focus", "5m", "--sensor-width", SENSOR]
     argv = ["fit", "sharp.png", "depth.npy", "target.npy", *start, "--weight", "half.png"]
-    res = _run([*argv, "--json", "--plot", "fit.png"], d)
+    # The target is the library's own default render: fit exactly that model.
+    exact = ["--method", "soft", "--no-footprint", "--edge-weight", "off"]
+    res = _run([*argv, *exact, "--json", "--plot", "fit.png"], d)
     figure = d / "fit.png"
     ndim = iio.imread(figure).ndim if figure.exists() else None
     figure.unlink(missing_ok=True)
@@ -214,6 +216,7 @@ def test_fit_json_and_plot(fit_run):
     obj = json.loads(res.stdout)  # exactly one JSON object on stdout
     assert obj["success"] is True and obj["steps"] > 0 and obj["loss"] >= 0
     assert set(obj["stderr"]) == {"f_number", "focus_distance"}
+    assert obj["treatment"]["forced"] == ["occlusion", "footprint", "edge_weight"]
     assert obj["pixel_pitch"] == pytest.approx(0.012 / W)
     # A noise-free target rendered by the same float32 model: the optimum is the truth, reached
     # to float32 solver precision (the fit's tolerance is 1e-5 in log coordinates).

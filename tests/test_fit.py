@@ -999,6 +999,7 @@ def test_degeneracy_wording_focus_at_infinity():
         shared=("focal_length", "f_number"),
         max_radius=10.0,
         starts=STARTS,
+        **EXACT,
     )
     with pytest.raises(ValueError) as err:
         fit_lens(image, depth, targets, inits, **kw)

@@ -37,6 +37,7 @@ import math
 import numpy as np
 from scipy import ndimage
 
+from .. import _tuning
 from .._corrections import depth_edges, edge_distance_to
 from .._filters import as_method
 from .._filters.local_occlusion import LocalOcclusion
@@ -45,15 +46,10 @@ from .forward import AbstractForwardModel, DefocusModel
 from .prepare import Problem
 
 
-# The rules' thresholds (measured on the tuning half of the ray-traced scenes; figures in
-# `fits/results/treatments.md`).
-#: A starting circle (px) under which the extra pixel footprint biases `K` by over 0.5 %.
-FOOTPRINT_BELOW = 5.8
-#: The share of the fitted pixels within reach of an edge that matters above which the fit
-#: treats occlusion (fewer: the few edge pixels cannot bias the lens beyond its noise).
-EDGE_MIN_SHARE = 0.005
-#: The edge weight is used only while it keeps this share of the fitted weight.
-EDGE_KEEP_MIN = 0.3
+# The rules' thresholds, with their measurements: `jaxdof/_tuning.py` (`TREATMENT_*`).
+FOOTPRINT_BELOW = _tuning.TREATMENT_FOOTPRINT_BELOW
+EDGE_MIN_SHARE = _tuning.TREATMENT_EDGE_MIN_SHARE
+EDGE_KEEP_MIN = _tuning.TREATMENT_EDGE_KEEP_MIN
 #: A circle (px) that spreads light off its pixel: the dead zone's edge.
 _DEAD_ZONE = 0.5
 #: The default model's method where occlusion matters: the per-pair local occlusion with the
