@@ -100,7 +100,9 @@ def make_scene(label: str) -> dict:
     from jaxdof.internal import write_image
 
     h, w, n_true, n_start = SIZES[label]
-    folder = CACHE / "fullres" / f"{h}x{w}"
+    # The photo integrates over its pixels as a sensor does (`footprint=True`, which the default
+    # fit models for circles of a few pixels); `_fp`: not the earlier caches' render without it.
+    folder = CACHE / "fullres" / f"{h}x{w}_fp"
     files = {
         k: str(folder / f)
         for k, f in [("sharp", "sharp.png"), ("depth", "depth.npy"), ("photo", "photo.png")]
@@ -113,7 +115,8 @@ def make_scene(label: str) -> dict:
     folder.mkdir(parents=True, exist_ok=True)
     image, depth = scene(h, w)
     band_rows = None if h * w <= 4_000_000 else 1000  # 24 MP in bands (under 4 GB)
-    photo = np.asarray(jax.device_get(jaxdof.render(image, depth, lens, band_rows=band_rows)))
+    photo = jaxdof.render(image, depth, lens, footprint=True, band_rows=band_rows)
+    photo = np.asarray(jax.device_get(photo))
     photo = photo + np.random.default_rng(1).normal(0, NOISE, photo.shape).astype(np.float32)
     np.save(files["depth"], depth, allow_pickle=False)
     write_image(files["sharp"], image, bits=16)

@@ -21,9 +21,9 @@ treatment that `fit_lens` turns on only where the scene needs it, by a measured 
   the starting lens's median circle over the fitted pixels is under `FOOTPRINT_BELOW` px.
 - **The border** is always left out (`fit_lens`'s `border`, decided with the window).
 
-On a large photo fitted on tiles, the tiles keep clear of depth edges while they can
-(`tiles.choose_tiles`); when none of them holds an edge, the occlusion render is dropped for the
-full-resolution solve (nothing there for it to do) and `Treatment` says so.
+On a large photo fitted on tiles, the scout that solves the starts renders soft (with the edge
+weight), the tiles keep clear of depth edges while they can (`tiles.choose_tiles`), and the
+occlusion render is used only where a chosen tile holds an edge (`Treatment` says which).
 
 Each choice can be forced (`fit_lens(method=..., footprint=..., edge_weight=...)`); a forced
 choice is reported as such. `Treatment` is what `FitResult.treatment` holds.
