@@ -118,7 +118,7 @@ def intro_lines(mi) -> list[str]:
         "4.5 m, a card at 2.6 m, a ball at 1.75 m, a pole at 2 m: many occlusion edges), "
         "**emitters** (16 emissive disks of 1 px radius at 1-40 m on black).",
         "",
-        f"Held-out split (issue 20): {', '.join(s for s in SCENES if s in TUNING)} are in the "
+        f"Held-out split (issues 20, 21): {', '.join(s for s in SCENES if s in TUNING)} are in the "
         "tuning half (`TUNING` in `_raytraced_scenes.py`), so every fit here is on tuning "
         f"scenes; the held-out half ({', '.join(HELD_OUT)}) is reported apart in "
         "[raytraced_default.md](raytraced_default.md).",

@@ -18,7 +18,7 @@ Layout: `_raytraced_scenes.py` (Mitsuba scenes, renders, lens mapping, CI fixtur
 `_raytraced_fits.py` (forward-model treatments and fits), `_raytraced_report.py` (the measured
 sections), `_raytraced_summary.py` (the summary written from them); this file runs them in order.
 `raytraced_default.py` uses the same modules for the default call of `fit_lens` on these scenes
-and five more, half of them held out of any tuning (`HELD_OUT` in `_raytraced_scenes.py`).
+and nine more, half of them held out of any tuning (`HELD_OUT` in `_raytraced_scenes.py`).
 
 Every scene is self-emitting (textured area emitters, `path` integrator with `max_depth=1`), so a
 pixel's value is the pixel- and aperture-average of the emitted radiance: the only noise is the
