@@ -231,7 +231,9 @@ def choose_treatment(
     want_weight = matters if edge_weight is None else bool(edge_weight)
     if want_weight and n_edges:
         width = reach if edge_weight in (None, True) else float(edge_weight) * ratio
-        weight = np.clip(edge_distance_to(edges, limit=width) / width, 0.0, 1.0) ** 2
+        # the distances above serve when the width is the reach (the automatic width)
+        d_w = dist if width <= max(reach, 1.0) else edge_distance_to(edges, limit=width)
+        weight = np.clip(d_w / width, 0.0, 1.0) ** 2
         kept = float(np.mean(weight[fitted_img])) if fitted_img.any() else 0.0
         if edge_weight is None and kept < EDGE_KEEP_MIN:
             weight, width = None, 0.0
