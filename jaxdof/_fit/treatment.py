@@ -63,8 +63,8 @@ OCCLUSION_METHOD = LocalOcclusion()
 class Treatment:
     """What `fit_lens` did to the scene, and why (`FitResult.treatment`).
 
-    - `method`: the default forward model's filter method (`"soft"`, `"occlusion"`, or the
-      caller's); `"model"` for a caller's forward model.
+    - `method`: the default forward model's filter method (`"soft"`, `"LocalOcclusion"`, or the
+      caller's `method=`); `"model"` for a caller's forward model.
     - `occlusion`: the forward model renders occlusion at depth edges.
     - `edge_pixels`: depth-edge pixels whose starting circle exceeds half a pixel (image grid).
     - `edge_share`: the share of the fitted pixels within a starting circle of such an edge.
@@ -218,10 +218,10 @@ def choose_treatment(
     fitted_img = np.repeat(np.repeat(fitted, ratio, 0), ratio, 1)
     median = float(np.median(r[fitted_img])) / ratio if fitted_img.any() else 0.0
     # An edge pixel matters when it or a neighbour across the edge spreads light off its pixel.
-    blurred = ndimage.maximum_filter(r, size=3) > _DEAD_ZONE * ratio
-    edges = depth_edges(depth, jump=DEFAULT_JUMP) & blurred
+    r_around = ndimage.maximum_filter(r, size=3)
+    edges = depth_edges(depth, jump=DEFAULT_JUMP) & (r_around > _DEAD_ZONE * ratio)
     n_edges = int(edges.sum())
-    reach = float(ndimage.maximum_filter(r, size=3)[edges].max()) + 1.0 if n_edges else 0.0
+    reach = float(r_around[edges].max()) + 1.0 if n_edges else 0.0
     dist = edge_distance_to(edges, limit=max(reach, 1.0))
     near = dist < reach
     share = float(np.mean(near[fitted_img])) if fitted_img.any() else 0.0
