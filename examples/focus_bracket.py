@@ -33,9 +33,14 @@ def main():
     sensor = dict(sensor_width=0.012, image_width=image.shape[1])  # 12 mm wide crop of a sensor
     truth = jaxdof.ThinLens.from_sensor(0.085, 2.8 + 0 * focus, focus, **sensor)
     rng = np.random.default_rng(1)
+    # Each photo as a camera takes it: occlusion at the box's edges, each pixel integrating the
+    # light over its area (the footprint), sensor noise. The fit decides by itself to model both.
+    camera = dict(method="local_occlusion", footprint=True)
     photos = [
         np.asarray(
-            jaxdof.render(image, depth, jaxdof.ThinLens.from_sensor(0.085, 2.8, d, **sensor))
+            jaxdof.render(
+                image, depth, jaxdof.ThinLens.from_sensor(0.085, 2.8, d, **sensor), **camera
+            )
         )
         + rng.normal(0, 0.005, image.shape).astype(np.float32)  # sensor noise
         for d in focus
@@ -50,6 +55,7 @@ def main():
         shared=("focal_length", "f_number"),
     )
     print(result.summary())
+    print(f"treatment: {result.treatment}")
     fitted, se = result.lenses, result.stderr
     f, n = float(fitted.focal_length[0]), float(fitted.f_number[0])
     print(f"focal length {f * 1e3:.2f} mm ± {float(se['focal_length'][0]) * 1e3:.2f} (truth 85)")

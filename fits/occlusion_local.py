@@ -44,7 +44,7 @@ from _raytraced_report import edge_distance, psnr  # noqa: E402
 from _raytraced_scenes import HELD_OUT, default_inputs, default_lenses, true_lens  # noqa: E402
 
 import jaxdof  # noqa: E402
-from jaxdof.internal import LocalOcclusion  # noqa: E402
+from jaxdof import LocalOcclusion  # noqa: E402
 
 
 METHODS = {

@@ -20,6 +20,7 @@ from ._filters import (
     Hard as Hard,
     Jitter as Jitter,
     Layered as Layered,
+    LocalOcclusion as LocalOcclusion,
     Occlusion as Occlusion,
     Soft as Soft,
     Supersample as Supersample,

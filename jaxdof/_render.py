@@ -170,7 +170,7 @@ def _filter(image, depth, radius, *, method, window, normalize, footprint, s) ->
     `s x s` block means. `window`: the window in input pixels (`None`: the largest circle)."""
     if footprint:  # corrected for the radius the filter spreads (clamped to the window)
         r = radius if window is None else jnp.minimum(radius, window)
-        image = footprint_prefilter(image, r, max_radius=window)
+        image = footprint_prefilter(image, r)
     out = coc_filter(
         image,
         radius,

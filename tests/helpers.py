@@ -81,6 +81,7 @@ CATALOGUE: dict[str, jaxdof.AbstractMethod] = {
     "layered": jaxdof.Layered(),
     "auto": jaxdof.Auto(),
     "occlusion": jaxdof.Occlusion(),
+    "local_occlusion": jaxdof.LocalOcclusion(),
 }
 METHODS = tuple(CATALOGUE.values())
 #: The methods whose radius derivative is that of their own forward model (a lens can be fitted).

@@ -50,6 +50,7 @@ METHOD_CLASSES = [
 def test_filter_methods_are_exported_objects():
     """The method family is public as classes (no string tables): the base and every built-in."""
     expected = {"Soft", "Hard", "Supersample", "Jitter", "Aperture", "Layered", "Occlusion", "Auto"}
+    expected |= {"LocalOcclusion"}
     assert set(METHOD_CLASSES) == expected | {"AbstractMethod"}
     assert not hasattr(jaxdof, "METHODS") and not hasattr(jaxdof, "DIFFERENTIABLE_IN_RADIUS")
 

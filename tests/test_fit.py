@@ -106,7 +106,9 @@ def test_noise_free_recovery_float32():
     compiled = {}
     for free in IDENTIFIABLE:
         init = wrong_init(free, np.float32)
-        res = fit_lens(image, depth, target, init, free=free, max_radius=WINDOW, starts=STARTS)
+        res = fit_lens(
+            image, depth, target, init, free=free, max_radius=WINDOW, starts=STARTS, **EXACT
+        )
         assert bool(res.success), (free, res.message)
         assert res.lens.f_number.dtype == jnp.float32
         err = rel_err(res.lens, true, ("focal_length", "f_number", "focus_distance"))
@@ -124,6 +126,7 @@ def test_noise_free_recovery_float32():
             free=("focal_length", "f_number"),
             max_radius=WINDOW,
             starts=STARTS,
+            **EXACT,
         )
 
 
@@ -135,7 +138,7 @@ def test_degenerate_free_set_refused(free):
     target = render(image, depth, lens())
     init = lens(f_number=3.0, focus_distance=1.8 if "focus_distance" in free else 1.6)
     with pytest.raises(ValueError, match=r"K = f\^2 / \(2 N \(d_f - f\)\).*focus bracket"):
-        fit_lens(image, depth, target, init, free=free, max_radius=WINDOW, starts=STARTS)
+        fit_lens(image, depth, target, init, free=free, max_radius=WINDOW, starts=STARTS, **EXACT)
     res = fit_lens(
         image,
         depth,
@@ -145,6 +148,7 @@ def test_degenerate_free_set_refused(free):
         max_radius=WINDOW,
         starts=STARTS,
         allow_degenerate=True,
+        **EXACT,
     )
     assert not bool(res.success)
     assert bool(res.status == RESULTS.degenerate)
@@ -199,12 +203,12 @@ def test_reproducible_bit_for_bit():
     rng = np.random.default_rng(1)
     target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
     init = wrong_init(("f_number", "focus_distance"))
-    a, _ = fit_twice_warm(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+    a, _ = fit_twice_warm(image, depth, target, init, max_radius=WINDOW, starts=STARTS, **EXACT)
     # The compiled stages can be timed without patching: `fit_starts` on every pixel (the border
     # band of this small frame keeps under half of it, `fit._SEARCH_ALL_BELOW`), `fit_starts` with
     # the band, then `finish`.
     with record_stages() as log:
-        c = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS)
+        c = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS, **EXACT)
     assert [name for name, _ in log] == ["fit_starts", "fit_starts", "finish"]
     assert all(t > 0 for _, t in log)
     np.testing.assert_array_equal(np.asarray(c.lenses.f_number), np.asarray(a.lenses.f_number))
@@ -262,6 +266,7 @@ def test_focus_bracket_recovers_f_and_n(capsys):
         max_radius=10.0,
         starts=STARTS,
         verbose=True,
+        **EXACT,
     )
     assert bool(res.success), res.message
     out = capsys.readouterr().out
@@ -368,6 +373,7 @@ def test_window_too_small_is_reported():
         lens(f_number=1.5, focus_distance=1.8),
         max_radius=WINDOW,
         starts=STARTS,
+        **EXACT,
     )
     assert not bool(res.success) and "max_radius" in res.message
     assert bool(res.status == RESULTS.window)
@@ -498,7 +504,7 @@ def test_user_forward_model_through_fit_lens():
     assert max(err.values()) < 1e-4, err  # noise-free float64, as for the default model
     # The default model on the same photo: a compilation of its own, and a worse fit (a disc is
     # not a Gaussian).
-    plain = fit_lens(image, depth, target, wrong_init(free), **kw)
+    plain = fit_lens(image, depth, target, wrong_init(free), **EXACT, **kw)
     assert float(plain.loss) > 1e6 * float(res.loss) + 1e-12
     again = fit_lens(image, depth, target, wrong_init(free), model=model, **kw)
     for x, y in zip(jax.tree_util.tree_leaves(res), jax.tree_util.tree_leaves(again)):
@@ -610,7 +616,7 @@ def test_pyramid_equals_full_resolution_fit():
     rng = np.random.default_rng(7)
     target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
     init = wrong_init(("f_number", "focus_distance"))
-    kw = dict(max_radius=WINDOW, starts=STARTS)
+    kw = dict(max_radius=WINDOW, starts=STARTS, **EXACT)
     flat = fit_lens(image, depth, target, init, pyramid=1, **kw)
     pyr = fit_lens(image, depth, target, init, pyramid=PYRAMID, **kw)
     assert bool(flat.success) and bool(pyr.success), (flat.message, pyr.message)
@@ -665,7 +671,7 @@ def test_pyramid_cannot_lead_the_init_astray():
     f, pitch = float(data["focal_length"]), float(data["pitch"])
     (n0, d0), (n_true, d_true) = data["init"], data["truth"]
     init = ThinLens(f, n0, d0, pitch)
-    kw = dict(free=("f_number", "focus_distance"), max_radius=float(data["window"]))
+    kw = dict(free=("f_number", "focus_distance"), max_radius=float(data["window"]), **EXACT)
     flat = fit_lens(image, depth, target, init, pyramid=1, starts=1, **kw)
     assert bool(flat.success) and abs(float(flat.lens.f_number) / n_true - 1) < 0.01
     for starts, pyramid in ((1, 2), (4, None)):  # from one start the pyramid must be asked for
@@ -686,7 +692,7 @@ def test_pyramid_reproducible_and_warm():
     rng = np.random.default_rng(3)
     target = np.asarray(render(image, depth, lens())) + 0.01 * rng.standard_normal((H, W))
     init = wrong_init(("f_number", "focus_distance"))
-    kw = dict(max_radius=WINDOW, starts=STARTS, pyramid=PYRAMID)
+    kw = dict(max_radius=WINDOW, starts=STARTS, pyramid=PYRAMID, **EXACT)
     a, b = fit_twice_warm(image, depth, target, init, **kw)
     assert a.levels == b.levels == PYRAMID
 
@@ -702,11 +708,13 @@ def test_pyramid_levels_chosen_as_documented():
     assert auto_levels((512, 512), 0.9) == 1  # the init is in the dead zone already
     image, depth = scene()
     res = fit_lens(image, depth, render(image, depth, lens()), lens(), max_radius=WINDOW,
-                   starts=STARTS)  # fmt: skip
+                   starts=STARTS, **EXACT)  # fmt: skip
     assert res.levels == 1
     # From one start the automatic choice is full resolution (the init is solved there anyway).
     image, depth = np.tile(image, (3, 3)), np.tile(depth, (3, 3))  # 96 x 96: two levels otherwise
-    res = fit_lens(image, depth, render(image, depth, lens()), lens(), max_radius=WINDOW, starts=1)
+    res = fit_lens(
+        image, depth, render(image, depth, lens()), lens(), max_radius=WINDOW, starts=1, **EXACT
+    )
     assert res.levels == 1
 
 
@@ -771,6 +779,7 @@ def test_near_far_ambiguity_is_reported(pyramid):
         max_radius=WINDOW,
         starts=STARTS,
         pyramid=pyramid,
+        **EXACT,
     )
     assert res.levels == pyramid
     # Both starts reach an exact fit, at different focus distances: never a silent pick.
@@ -965,7 +974,15 @@ def test_flat_start_does_not_decide_the_fit():
     # Starts N = 8 (circles up to 0.76 px), 16 (up to 0.38 px: flat), 4.
     init = lens(f_number=8.0)
     res = fit_lens(
-        image, depth, target, init, free=("f_number",), max_radius=WINDOW, starts=3, max_steps=2
+        image,
+        depth,
+        target,
+        init,
+        free=("f_number",),
+        max_radius=WINDOW,
+        starts=3,
+        max_steps=2,
+        **EXACT,
     )
     assert bool(res.status == RESULTS.max_steps), res.message
     assert float(res.lens.f_number) < 8.0
@@ -980,7 +997,7 @@ def test_degeneracy_wording_per_target_pair():
     with pytest.raises(ValueError) as err:
         fit_lens(
             image, depth, targets, inits, free=("focal_length", "f_number"), max_radius=10.0,
-            starts=STARTS,
+            starts=STARTS, **EXACT,
         )  # fmt: skip
     text = str(err.value)
     assert "free set ('focal_length', 'f_number') (shared (), 2 target(s))" in text
@@ -1019,7 +1036,7 @@ def test_degeneracy_wording_generic():
     with pytest.raises(ValueError) as err:
         fit_lens(
             image, depth, target, lens(f_number=2.2, focus_distance=1.45), max_radius=WINDOW,
-            starts=1,
+            starts=1, **EXACT,
         )  # fmt: skip
     text = str(err.value)
     assert "the data do not determine f_number, focus_distance" in text

@@ -1,4 +1,4 @@
-"""`jaxdof.internal.LocalOcclusion` (experimental): occlusion decided per pair of pixels. Exactly the soft filter where no
+"""`jaxdof.LocalOcclusion` (`method="local_occlusion"`): occlusion decided per pair of pixels. Exactly the soft filter where no
 source leaves its receiver's surface (planes, even receding ones), a sharp foreground keeps its
 edge in front of a blurred background, a blurred foreground is semi-transparent over a sharp
 background; the fill: a blurred background keeps its brightness beside a sharp card (no dark
@@ -12,7 +12,7 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxdof
-from jaxdof.internal import LocalOcclusion
+from jaxdof import LocalOcclusion
 
 
 H, W, MAXR = 24, 28, 6.0

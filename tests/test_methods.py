@@ -20,6 +20,7 @@ from jaxdof import (
     Hard,
     Jitter,
     Layered,
+    LocalOcclusion,
     Occlusion,
     Soft,
     Supersample,
@@ -69,7 +70,7 @@ def _err(a, b):
 
 # --- methods are objects; strings are aliases of the default objects ---------------------------
 
-BUILT_IN = (Soft, Hard, Supersample, Jitter, Aperture, Layered, Occlusion, Auto)
+BUILT_IN = (Soft, Hard, Supersample, Jitter, Aperture, Layered, Occlusion, LocalOcclusion, Auto)
 
 
 def test_aliases_are_the_catalogue():

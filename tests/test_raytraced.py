@@ -24,10 +24,13 @@ from jaxdof import (
 )
 from jaxdof.internal import (
     edge_distance,
+    footprint_coefficient,
     footprint_radius,
     kernel_variance,
     pixel_prefilter,
 )
+
+from .helpers import EXACT
 
 
 DATA = Path(__file__).parent / "data"
@@ -189,19 +192,18 @@ def fixture_start(f):
     return truth, init, weight, r0
 
 
-def fit_fixture(name, *, edges):
+def fit_fixture(name, **options):
+    """The fixture's fit from the study's start (one start), with `fit_lens`'s `options`."""
     f = load(name)
-    truth, init, weight, r0 = fixture_start(f)
-    depth = f["depth"].astype(np.float64)
-    if edges:
-        weight = weight * edge_weight(depth, width=r0 + 1.0)
+    truth, init, weight, _ = fixture_start(f)
     res = jaxdof.fit_lens(
         f["image"].astype(np.float64),
-        depth,
+        f["depth"].astype(np.float64),
         f["target"].astype(np.float64),
         init,
         weight=weight,
         starts=1,
+        **options,
     )
     return res, truth
 
@@ -243,7 +245,7 @@ def within_goal(res, truth):
 
 def test_fit_recovers_raytraced_lens_without_depth_edges():
     # One slanted plane, circles 0.2-3.4 px (fits/raytraced.py: d_f +0.7%, K -0.1% on this crop).
-    res, truth = fit_fixture("slant", edges=False)
+    res, truth = fit_fixture("slant")
     assert_recovered(res, truth)
 
 
@@ -274,18 +276,20 @@ def test_a_finer_input_recovers_the_smallest_blur_scale():
     assert not ok1 and max(df1, k1) > 0.1, (df1, k1)  # the 1x input: far outside the goal
 
 
-def test_edge_weight_removes_occlusion_bias():
-    # Occluders in front of a wall: without the edge weight the pixels next to occlusion edges,
-    # which no single-layer image can model, pull the focus distance off by ~13% (measured);
-    # with it the fit meets the goal (d_f +0.6%, K -4.7%: K's bias is the pixel footprint, see
-    # fits/results/raytraced.md). The second fit reuses the first one's compilation.
-    res, truth = fit_fixture("occluders", edges=True)
-    assert_recovered(res, truth)
-    plain, _ = fit_fixture("occluders", edges=False)
+def test_default_treatment_removes_occlusion_bias():
+    # Occluders in front of a wall: the soft model without the edge weight, where the pixels next
+    # to occlusion edges (which no single-layer image can model) pull the focus distance off by
+    # ~13% (measured), not silently: the adequacy test flags it or its errors cover the miss.
+    plain, truth = fit_fixture("occluders", **EXACT)
     _, df_plain, _ = within_goal(plain, truth)
-    assert df_plain > 0.05  # the bias the weight removes, well beyond the 2% goal
-    # ... and not silently: the adequacy test flags it (or its errors cover the miss).
+    assert df_plain > 0.05  # the bias the treatment removes, well beyond the 2% goal
     assert not bool(plain.success) or covered(plain, truth)[0], plain.message
+    # The default call chooses the occlusion render, the edge weight and the footprint correction
+    # on this crop (measured d_f -0.7%) and meets the goal.
+    res, _ = fit_fixture("occluders")
+    t = res.treatment
+    assert t.occlusion and t.edge_weight > 0 and t.footprint and not t.forced, t
+    assert_recovered(res, truth)
 
 
 def test_occlusion_render_closes_most_of_the_gap_at_depth_edges():
@@ -401,6 +405,27 @@ def test_kernel_variance_limits_and_gradients():
     )
 
 
+def test_footprint_coefficient_matches_the_closed_form():
+    # The tabulated c(r) = (Var - r^2/4)/2 that footprint_prefilter uses, against the closed form
+    # (kernel_variance) on 20000 radii over 0-30 px, densest at the column boundaries k + 1/2
+    # where Var's (r - k - 1/2)^(3/2) term is: measured 7.5e-9 px^2 (float64; c is ~0.03-0.04),
+    # and float32's own rounding (8.7e-8) in float32. Its derivative is C^1 and finite at 0.
+    rng = np.random.default_rng(11)
+    boundaries = np.arange(25)[:, None] + 0.5 + np.array([0.0, 1e-6, 1e-4, 1e-3, 1e-2])[None]
+    r = np.concatenate([rng.uniform(0.0, 30.0, 20000), boundaries.ravel(), [0.0, 0.5, 24.5, 30.0]])
+    exact = (np.asarray(kernel_variance(r)) - r * r / 4) / 2
+    np.testing.assert_allclose(np.asarray(footprint_coefficient(r)), exact, rtol=0, atol=1e-8)
+    c32 = footprint_coefficient(r.astype(np.float32))
+    assert c32.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(c32), exact, rtol=0, atol=2e-7)
+    check_grads(
+        jax.jit(footprint_coefficient),
+        (np.array([0.0, 0.3, 0.62, 1.1, 1.8, 3.3, 9.7, 31.0]),),
+        order=1,
+        modes=["fwd", "rev"],
+    )
+
+
 def test_footprint_prefilter_gives_the_lens_variance():
     # Spreading the corrected image with the filter's kernel must give the lens disc's per-axis
     # variance r^2/4 exactly (the prefilter matches the second moment by construction), including
@@ -419,8 +444,11 @@ def test_footprint_prefilter_gives_the_lens_variance():
     for r in (0.0, 0.3, 0.45, 0.7, 1.0, 1.3, 2.2, 3.7):
         out = np.asarray(impulse_response(r))
         np.testing.assert_allclose(out.sum(), 1.0, rtol=1e-13)
-        np.testing.assert_allclose((out * xx**2).sum(), r * r / 4, atol=1e-12)
-        np.testing.assert_allclose((out * yy**2).sum(), r * r / 4, atol=1e-12)
+        # To the tabulated coefficient's error (2 c: 1.5e-8 px^2, the test above); exact
+        # (float64 rounding) under half a pixel, where c = -r^2/8 is computed, not read.
+        tol = 1e-12 if r < 0.5 else 3e-8
+        np.testing.assert_allclose((out * xx**2).sum(), r * r / 4, atol=tol)
+        np.testing.assert_allclose((out * yy**2).sum(), r * r / 4, atol=tol)
 
 
 def test_pixel_prefilter_inverts_the_box_on_a_band_limited_signal():

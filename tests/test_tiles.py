@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 import jaxdof
+from jaxdof import LocalOcclusion
 from jaxdof._fit import tiles as T
 from jaxdof._fit.prepare import prepare_problem
-from jaxdof.internal import LocalOcclusion
 
 from .helpers import EXACT
 

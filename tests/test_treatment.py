@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxdof
-from jaxdof import _corrections
+from jaxdof import LocalOcclusion, _corrections
 from jaxdof._fit.treatment import (
     EDGE_KEEP_MIN,
     FOOTPRINT_BELOW,
@@ -15,7 +15,6 @@ from jaxdof._fit.treatment import (
     choose_treatment,
     start_circles,
 )
-from jaxdof.internal import LocalOcclusion
 
 
 PITCH = 1e-5
@@ -127,7 +126,7 @@ def test_fit_lens_reports_and_obeys_its_treatment():
     init = jaxdof.ThinLens(0.05, 20.0, 1.4, PITCH)
     auto = jaxdof.fit_lens(image, depth, photo, init, starts=1)
     assert isinstance(auto.treatment, Treatment)
-    assert auto.treatment.method == "LocalOcclusion" and auto.treatment.edge_weight > 0
+    assert auto.treatment.method == "local_occlusion" and auto.treatment.edge_weight > 0
     assert auto.treatment.footprint and bool(auto.success), auto.message
     err = rel_err(auto.lens, truth)
     assert max(err) < 1e-3, err

@@ -651,12 +651,15 @@ def run_demo(args) -> int:
     h, w = depth.shape
     truth = jaxdof.ThinLens.from_sensor(0.085, 1.4, 3.0, sensor_width=0.036, image_width=w)
     start = jaxdof.ThinLens.from_sensor(0.085, 4.0, 5.0, sensor_width=0.036, image_width=w)
-    # Sensor noise (seeded): without it the fit is exact and every standard error is 0.
+    # The photo as a camera takes it: occlusion at the depth edges, each pixel integrating the light
+    # over its area (the footprint), and sensor noise (seeded: without it every standard error is 0).
+    camera = dict(method="local_occlusion", footprint=True)
     noise = np.random.default_rng(1).normal(0.0, 0.005, size=image.shape).astype(np.float32)
-    target = np.asarray(jaxdof.render(image, depth, truth)) + noise
+    target = np.asarray(jaxdof.render(image, depth, truth, **camera)) + noise
     print(
         f"scene {h}x{w}, depths {depth.min():.2g}-{depth.max():.2g} m; truth 85mm f/1.4 focused at "
-        f"3 m (blur scale {float(truth.blur_scale):.2f} px) + noise sigma 0.005; start f/4 at 5 m"
+        f"3 m (blur scale {float(truth.blur_scale):.2f} px), rendered with occlusion and the pixel "
+        "footprint, + noise sigma 0.005; start f/4 at 5 m"
     )
     free = ("focus_distance", "f_number")
     with Display.for_stderr(args.quiet) as display:
@@ -667,7 +670,10 @@ def run_demo(args) -> int:
         progress.close()
     report.print_demo(truth, start, result)
     if path:
-        refit = np.asarray(jaxdof.render(image, depth, result.lens))
+        t = result.treatment
+        refit = np.asarray(
+            jaxdof.render(image, depth, result.lens, method=t.method, footprint=t.footprint)
+        )
         radius = np.asarray(jaxdof.coc_radius(depth, truth))
         plot.plot_demo(path, image, target, refit, radius)
         print(f"wrote {path}")

@@ -6,6 +6,7 @@ from .coc_filter import coc_filter as coc_filter
 from .hard import Hard as Hard
 from .jitter import Jitter as Jitter
 from .layered import Layered as Layered
+from .local_occlusion import LocalOcclusion as LocalOcclusion
 from .occlusion import Occlusion as Occlusion
 from .soft_method import Soft as Soft
 from .supersample import Supersample as Supersample

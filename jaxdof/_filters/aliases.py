@@ -8,6 +8,7 @@ from .base import AbstractMethod
 from .hard import Hard
 from .jitter import Jitter
 from .layered import Layered
+from .local_occlusion import LocalOcclusion
 from .occlusion import Occlusion
 from .soft_method import Soft
 from .supersample import Supersample
@@ -24,6 +25,7 @@ _ALIASES: dict[str, type[AbstractMethod]] = {
     "layered": Layered,
     "auto": Auto,
     "occlusion": Occlusion,
+    "local_occlusion": LocalOcclusion,
 }
 
 #: The names `as_method` accepts (the command line's `--method` choices).

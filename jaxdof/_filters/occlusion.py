@@ -154,6 +154,10 @@ def occlusion_filter(
 class Occlusion(AbstractMethod):
     r"""Occlusion-aware scatter: depth-ordered layers, each blurred alone, composited with `over`.
 
+    The layers split at gaps in the *whole image's* depths: where a floor or a receding wall joins
+    the near and the far depths there is no gap, and this renders exactly as `Soft`. Occlusion
+    decided around each pixel is `LocalOcclusion` (`"local_occlusion"`), which `fit_lens` uses.
+
     The soft scatter (`Soft`) adds every pixel's disc of light to the output, whatever lies in front
     of it. A real aperture does not: light from a far surface is blocked by a nearer one, and around
     a nearer object's edge the aperture sees background that the all-in-focus (pinhole) image hides.

@@ -735,7 +735,7 @@ def fit_lens(
       your own (a subclass) runs through the same solve, compiled for it.
     - `method`, `footprint`, `downsample`: the default model's options, only without `model`
       (giving both is a `ValueError`); see `jaxdof.DefocusModel`. `method` (default `None`: the
-      exact coverage `"soft"`, or `jaxdof.internal.LocalOcclusion()` where depth edges matter;
+      exact coverage `"soft"`, or `jaxdof.LocalOcclusion()` where depth edges matter;
       see *Treatment* below)
       must be differentiable with respect to the radius; `footprint` (default `None`: on where
       small circles dominate) is the pixel-footprint correction; `downsample` (default 1): the
@@ -792,7 +792,7 @@ def fit_lens(
     **Treatment.** By default the fit inspects the depth map and the `init` lens and turns on
     only what the scene needs (`jaxdof/_fit/treatment.py` has the rules and their figures): where
     depth edges with circles over half a pixel touch more than 0.5 % of the fitted pixels, the
-    occlusion-aware render (`jaxdof.internal.LocalOcclusion()`: occlusion decided per pair of
+    occlusion-aware render (`jaxdof.LocalOcclusion()`: occlusion decided per pair of
     pixels against the receiver's own surface, so a floor is no edge, the hidden surfaces filled)
     and the edge weight (width: the largest starting
     circle on those edges plus a pixel; dropped where it would leave under 30 % of the weight);

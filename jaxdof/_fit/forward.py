@@ -185,7 +185,7 @@ class DefocusModel(AbstractForwardModel):
         # From here on as `jaxdof.render`: circles and window in the input's pixels.
         radius, window = radius * s, max_radius * s
         if self.footprint:
-            image = footprint_prefilter(image, jnp.minimum(radius, window), max_radius=window)
+            image = footprint_prefilter(image, jnp.minimum(radius, window))
         out = coc_filter(
             image,
             radius,

@@ -11,7 +11,7 @@ treatment that `fit_lens` turns on only where the scene needs it, by a measured 
   slanted wall is no edge) or a neighbour has a circle over half a pixel at the starting lens: below that the
   render copies the pixel (the dead zone) and no light crosses the edge. When such edges touch more
   than `EDGE_MIN_SHARE` of the fitted pixels (within the circle of one of them), the forward model
-  renders occlusion (`OCCLUSION_METHOD`, `jaxdof.internal.LocalOcclusion`), and the fit weight ramps to 0 towards them
+  renders occlusion (`OCCLUSION_METHOD`, `jaxdof.LocalOcclusion`), and the fit weight ramps to 0 towards them
   (`jaxdof.edge_weight` with the width of the largest starting circle on them, plus a pixel) unless
   that would leave less than `EDGE_KEEP_MIN` of the weight, where the edges are the scene.
 - **Small circles.** Spreading a pinhole pixel (itself a box average) with the circle-pixel
@@ -40,7 +40,6 @@ from scipy import ndimage
 from .. import _tuning
 from .._corrections import depth_edges, edge_distance_to
 from .._filters import as_method
-from .._filters.local_occlusion import LocalOcclusion
 from .._filters.occlusion import DEFAULT_JUMP
 from .forward import AbstractForwardModel, DefocusModel
 from .prepare import Problem
@@ -56,15 +55,15 @@ _DEAD_ZONE = 0.5
 #: hidden surfaces filled, chosen over the global layers of `Occlusion` by `fits/occlusion_local.py`
 #: (within 2 px of edges 0.5-0.7 dB behind it on the tuning scenes, 4.4 dB ahead on the held-out
 #: floor scene, where no global depth gap exists; at 2-3x the soft filter's cost against 6-11x).
-OCCLUSION_METHOD = LocalOcclusion()
+OCCLUSION_METHOD = "local_occlusion"
 
 
 @dataclasses.dataclass(frozen=True)
 class Treatment:
     """What `fit_lens` did to the scene, and why (`FitResult.treatment`).
 
-    - `method`: the default forward model's filter method (`"soft"`, `"LocalOcclusion"`, or the
-      caller's `method=`); `"model"` for a caller's forward model.
+    - `method`: the default forward model's filter method (`"soft"`, `"local_occlusion"`, or the
+      caller's `method=`, by its alias or class name); `"model"` for a caller's forward model.
     - `occlusion`: the forward model renders occlusion at depth edges.
     - `edge_pixels`: depth-edge pixels whose starting circle exceeds half a pixel (image grid).
     - `edge_share`: the share of the fitted pixels within a starting circle of such an edge.

@@ -28,13 +28,10 @@ What is here (re-exports only):
 - **Model adequacy**: `adequacy` (the between-tile test on a fit's residual and Jacobian),
   `rounding_noise` (its noise floor), `ADEQUACY_ALPHA` (its default significance level).
 - **Corrections**: `edge_distance` (distance to the nearest depth edge, under `jaxdof.edge_weight`),
-  `kernel_variance` (the filter kernel's variance, under `jaxdof.footprint_prefilter`), and the
+  `kernel_variance` (the filter kernel's variance) and `footprint_coefficient` (its table, which
+  `jaxdof.footprint_prefilter` reads), and the
   study-only candidates that lost to `footprint_prefilter` against ray tracing
   (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
-- **Local occlusion**: `LocalOcclusion`, occlusion decided per pair of pixels against the
-  receiver's extrapolated surface, with the hidden surfaces filled: the forward model `fit_lens`
-  chooses where depth edges matter (`jaxdof/_fit/treatment.py`); measured against ray tracing
-  and `jaxdof.Occlusion` in `fits/results/occlusion_local.md` (not yet a `method=` alias).
 - **Memory**: `estimate_memory` (a render's), `estimate_fit_memory` (a fit's; the CLI's
   `fit --memory`).
 - **Files**: `read_image` and `write_image`, the CLI's readers and writers (linear light;
@@ -47,6 +44,7 @@ What is here (re-exports only):
 from .. import _tuning as tuning  # noqa: F401
 from .._corrections import (
     edge_distance as edge_distance,
+    footprint_coefficient as footprint_coefficient,
     kernel_variance as kernel_variance,
 )
 from .._filters.aperture import aperture_filter as aperture_filter
@@ -59,7 +57,6 @@ from .._filters.common import (
 from .._filters.hard import hard_filter as hard_filter
 from .._filters.jitter import jitter_filter as jitter_filter
 from .._filters.layered import layered_filter as layered_filter
-from .._filters.local_occlusion import LocalOcclusion as LocalOcclusion
 from .._filters.soft import (
     gather as gather,
     soft_filter as soft_filter,
