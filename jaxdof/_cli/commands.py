@@ -653,9 +653,9 @@ def run_demo(args) -> int:
     start = jaxdof.ThinLens.from_sensor(0.085, 4.0, 5.0, sensor_width=0.036, image_width=w)
     # The photo as a camera takes it: occlusion at the depth edges, each pixel integrating the light
     # over its area (the footprint), and sensor noise (seeded: without it every standard error is 0).
-    camera = dict(method="local_occlusion", footprint=True)
     noise = np.random.default_rng(1).normal(0.0, 0.005, size=image.shape).astype(np.float32)
-    target = np.asarray(jaxdof.render(image, depth, truth, **camera)) + noise
+    photo = jaxdof.render(image, depth, truth, method="local_occlusion", footprint=True)
+    target = np.asarray(photo) + noise
     print(
         f"scene {h}x{w}, depths {depth.min():.2g}-{depth.max():.2g} m; truth 85mm f/1.4 focused at "
         f"3 m (blur scale {float(truth.blur_scale):.2f} px), rendered with occlusion and the pixel "
@@ -671,6 +671,7 @@ def run_demo(args) -> int:
     report.print_demo(truth, start, result)
     if path:
         t = result.treatment
+        assert t is not None  # fit_lens always reports its treatment
         refit = np.asarray(
             jaxdof.render(image, depth, result.lens, method=t.method, footprint=t.footprint)
         )
