@@ -84,7 +84,7 @@ def test_every_method_is_an_equinox_module(cls):
     can drive a fit (a bool class variable)."""
     assert issubclass(cls, AbstractMethod) and issubclass(cls, eqx.Module)
     assert isinstance(cls.differentiable_in_radius, bool) and isinstance(cls.uses_depth, bool)
-    assert cls.uses_depth == (cls is Occlusion)
+    assert cls.uses_depth == (cls in (Occlusion, LocalOcclusion))
 
 
 @pytest.mark.parametrize("name", [n for n in METHOD_ALIASES if n != "jitter"])
