@@ -56,8 +56,10 @@ def main() -> None:
     n = args.size
     image = jnp.asarray(rng.uniform(size=(n, n, 3)), jnp.float32)
     print(f"# footprint correction cost, {n}x{n} RGB float32, {jax.devices()[0].platform}")
-    print("| window | soft ms | table ms | closed ms | table/soft | closed/soft | jvp: soft | "
-          "table | closed |")
+    print(
+        "| window | soft ms | table ms | closed ms | table/soft | closed/soft | jvp: soft | "
+        "table | closed |"
+    )
     print("|---|---|---|---|---|---|---|---|---|")
     for window in (2.0, 4.0, 8.0, 12.0):
         radius = jnp.asarray(rng.uniform(0.0, window, size=(n, n)), jnp.float32)
@@ -67,7 +69,7 @@ def main() -> None:
         row = [timed(f, radius, repeats=args.repeats) for f in (soft, table, closed)]
         tangent = jnp.ones_like(radius)
         jvps = [
-            timed(jax.jit(lambda r, f=f: jax.jvp(f, (r,), (tangent,))), radius,
+            timed(jax.jit(lambda r, f=f, t=tangent: jax.jvp(f, (r,), (t,))), radius,
                   repeats=args.repeats)
             for f in (soft, table, closed)
         ]  # fmt: skip
