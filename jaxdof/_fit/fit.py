@@ -796,7 +796,7 @@ def fit_lens(
     pixels against the receiver's own surface, so a floor is no edge, the hidden surfaces filled)
     and the edge weight (width: the largest starting
     circle on those edges plus a pixel; dropped where it would leave under 30 % of the weight);
-    where the starting lens's median circle is under 5.8 px, the footprint correction (else `K`
+    where the starting lens's median circle is under 40 px, the footprint correction (else `K`
     comes out short by about `1 / (6 r^2)`); and always the border. `method`, `footprint` and
     `edge_weight` force a choice; `FitResult.treatment` reports every choice and which were
     forced. A `model` of your own is fitted as it is (no edge weight unless `edge_weight` asks;
