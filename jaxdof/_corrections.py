@@ -43,16 +43,16 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03) -> np.ndarray:
     if not (jump > 0):
         raise ValueError(f"jump must be a positive relative depth difference, got {jump}")
     edges = np.zeros(d.shape, bool)
-    for axis in (0, 1):
-        a = np.moveaxis(d, axis, 0)
-        lo, hi = a[:-1], a[1:]
-        with np.errstate(invalid="ignore"):  # inf - inf: both sky, no edge
-            rel = np.abs(lo - hi)
-            rel /= np.minimum(lo, hi)
-        step = np.nan_to_num(rel, copy=False, nan=0.0, posinf=np.inf) > jump
-        e = np.moveaxis(edges, axis, 0)
-        e[:-1] |= step
-        e[1:] |= step
+    # |d_p - d_q| > jump min(d_p, d_q): the relative test without a division (depths are > 0);
+    # inf - inf (both sky) is NaN, which compares False: no edge. One pair of slices per axis.
+    with np.errstate(invalid="ignore"):
+        for lo, hi, e_lo, e_hi in (
+            (d[:-1], d[1:], edges[:-1], edges[1:]),
+            (d[:, :-1], d[:, 1:], edges[:, :-1], edges[:, 1:]),
+        ):
+            step = np.abs(lo - hi) > jump * np.minimum(lo, hi)
+            e_lo |= step
+            e_hi |= step
     return edges
 
 
