@@ -230,9 +230,9 @@ def _render_bands(image, depth, lens: ThinLens, rows: int, *, method, window, s,
         )
     if _needs_whole_frame(method):
         raise ValueError(
-            f"method {type(method).__name__}() decides from the whole frame (its depth layers or "
-            "its per-pixel random patterns), so bands would change its pixels: render the whole "
-            "frame (band_rows=None), or reduce the frame (downsample, a crop)"
+            f"method {type(method).__name__}() reads the depth map or decides from the whole frame "
+            "(depth layers, per-pixel random patterns), which bands do not support: render the "
+            "whole frame (band_rows=None), or reduce the frame (downsample, a crop)"
         )
     h_in = image.shape[0]
 

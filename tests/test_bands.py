@@ -95,7 +95,8 @@ def test_soft_bands_are_the_whole_frame(band_rows):
     np.testing.assert_array_equal(banded, whole)
 
 
-_BANDED = [m for name, m in CATALOGUE.items() if name not in ("jitter", "occlusion")]
+_WHOLE_FRAME = ("jitter", "occlusion", "local_occlusion")  # refused in bands (test_refusals)
+_BANDED = [m for name, m in CATALOGUE.items() if name not in _WHOLE_FRAME]
 
 
 @pytest.mark.slow
@@ -159,7 +160,7 @@ def test_refusals():
     `>= 1`."""
     image, depth = _scene()
     lens = _lens(SMALL)
-    for method in (CATALOGUE["occlusion"], CATALOGUE["jitter"]):
+    for method in (CATALOGUE[name] for name in _WHOLE_FRAME):
         with pytest.raises(ValueError, match="whole frame"):
             jaxdof.render(image, depth, lens, method=method, band_rows=5)
     with pytest.raises(ValueError, match="concrete inputs"):

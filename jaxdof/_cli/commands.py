@@ -208,9 +208,9 @@ def band_rows(args, shape: tuple[int, ...], window: float) -> int | None:
         return None
     if _needs_whole_frame(args.method):
         raise InputError(
-            f"--method {args.method} renders the whole frame at once (it decides from every "
-            f"pixel), which needs about {_size(whole)} for this {shape[0]}x{shape[1]} image, over "
-            f"--memory {_size(budget)}: give --memory {_size(whole * 1.1)}, another --method, or a "
+            f"--method {args.method} renders the whole frame at once (it reads the depth map or "
+            f"decides from every pixel), which needs about {_size(whole)} for this "
+            f"{shape[0]}x{shape[1]} image, over --memory {_size(budget)}: give --memory {_size(whole * 1.1)}, another --method, or a "
             "smaller image"
         )
     if need(1) > budget:
