@@ -210,8 +210,8 @@ def band_rows(args, shape: tuple[int, ...], window: float) -> int | None:
         raise InputError(
             f"--method {args.method} renders the whole frame at once (it reads the depth map or "
             f"decides from every pixel), which needs about {_size(whole)} for this "
-            f"{shape[0]}x{shape[1]} image, over --memory {_size(budget)}: give --memory {_size(whole * 1.1)}, another --method, or a "
-            "smaller image"
+            f"{shape[0]}x{shape[1]} image, over --memory {_size(budget)}: give --memory "
+            f"{_size(whole * 1.1)}, another --method, or a smaller image"
         )
     if need(1) > budget:
         raise InputError(
