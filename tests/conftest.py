@@ -45,11 +45,11 @@ def _memory_maps() -> int:
 _MAPS_BEFORE_CLEARING = 20_000
 
 
-@pytest.fixture(autouse=True, scope="module")
+@pytest.fixture(autouse=True)
 def _release_compiled_code():
-    """After a test module, drop the compiled executables (`jax.clear_caches`) once the process
-    holds more than `_MAPS_BEFORE_CLEARING` mappings; below that they stay, for the next module
-    that compiles the same shapes."""
+    """After a test, drop the compiled executables (`jax.clear_caches`) once the process holds
+    more than `_MAPS_BEFORE_CLEARING` mappings; below that they stay, for the next test that
+    compiles the same shapes (counting them reads `/proc/self/maps`: milliseconds)."""
     yield
     if _memory_maps() > _MAPS_BEFORE_CLEARING:
         jax.clear_caches()
