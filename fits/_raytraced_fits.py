@@ -20,7 +20,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from _common import FITS, cached_json  # noqa: E402
+from _common import FITS, cached_json, release_compiled_code  # noqa: E402
 from _raytraced_scenes import (  # noqa: E402
     CACHE,
     CONFIGS,
@@ -420,6 +420,7 @@ def default_fit(scene, a, d, x64: bool, options: dict | None = None) -> dict:
     image, z, target = default_inputs(scene, a, d)
     dtype = np.float64 if x64 else np.float32
     image, z, target = (np.asarray(x, dtype) for x in (image, z, target))
+    release_compiled_code()  # a long study would reach the kernel's limit of memory maps
     t0 = time.perf_counter()
     try:
         res = fit_lens(image, z, target, default_init(a, d), **(options or {}))
