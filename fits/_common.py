@@ -39,24 +39,6 @@ CACHE = FITS / ".cache"
 # ------------------------------------------------------------------------------ conditions
 
 
-def release_compiled_code(limit: int = 20_000) -> bool:
-    """`jax.clear_caches()` once this process holds more than `limit` memory mappings (Linux;
-    `False` elsewhere). Every XLA:CPU executable holds a few mappings while a jit cache keeps it;
-    a long study that keeps them all reaches the kernel's `vm.max_map_count` (65530) and dies in
-    the compiler ("Cannot allocate memory", or a segfault). Call it between fits."""
-    try:
-        with open("/proc/self/maps") as f:
-            maps = sum(1 for _ in f)
-    except OSError:
-        return False
-    if maps <= limit:
-        return False
-    import jax
-
-    jax.clear_caches()
-    return True
-
-
 def load_average() -> str:
     """`"1.0, 0.8, 0.5"`: the 1, 5 and 15 minute load averages, or `"?, ?, ?"` where unknown."""
     if not hasattr(os, "getloadavg"):

@@ -30,29 +30,16 @@ def _x64_stays_on():
         pytest.fail("the test left jax_enable_x64 off; run float32 code on float32 arrays instead")
 
 
-def _memory_maps() -> int:
-    """This process's memory mappings (Linux), 0 where `/proc` is not there."""
-    try:
-        with open("/proc/self/maps") as f:
-            return sum(1 for _ in f)
-    except OSError:
-        return 0
-
-
-# Every XLA:CPU executable holds a few memory mappings for as long as a jit cache keeps it. A worker
-# of the slow run kept them all and reached the kernel's limit (vm.max_map_count, 65530 by
-# default): two workers segfaulted inside the compiler, one at 41,500 mappings seen beside it.
-_MAPS_BEFORE_CLEARING = 20_000
-
-
 @pytest.fixture(autouse=True)
 def _release_compiled_code():
-    """After a test, drop the compiled executables (`jax.clear_caches`) once the process holds
-    more than `_MAPS_BEFORE_CLEARING` mappings; below that they stay, for the next test that
-    compiles the same shapes (counting them reads `/proc/self/maps`: milliseconds)."""
+    """After a test, drop the compiled executables once the worker holds over 20,000 memory
+    mappings (`jaxdof.internal.release_compiled_code`): two slow-run workers that kept them all
+    segfaulted inside the compiler at the kernel's limit (vm.max_map_count 65530)."""
     yield
-    if _memory_maps() > _MAPS_BEFORE_CLEARING:
-        jax.clear_caches()
+    # imported here: the config above is set before anything of jaxdof is imported
+    from jaxdof.internal import release_compiled_code
+
+    release_compiled_code(max_maps=20_000)
 
 
 # The `slow` marker, from one list (tests/slow_tests.txt: file::function, with its provenance).

@@ -34,6 +34,8 @@ What is here (re-exports only):
   (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
 - **Memory**: `estimate_memory` (a render's), `estimate_fit_memory` (a fit's; the CLI's
   `fit --memory`).
+  `release_compiled_code` (drops the compiled executables once the process holds many memory
+  mappings: for long loops of compiles) and `memory_maps` (their count).
 - **Files**: `read_image` and `write_image`, the CLI's readers and writers (linear light;
   16-bit PNG and TIFF, sRGB encoding), for studies that make their scenes as files.
 - **Overlap**: `textbook_overlap`, the inclusion-exclusion form of the circle-pixel overlap that
@@ -42,6 +44,10 @@ What is here (re-exports only):
 
 # A renamed re-export is one ruff cannot tell from an unused import: hence the noqa below.
 from .. import _tuning as tuning  # noqa: F401
+from .._compiled import (
+    memory_maps as memory_maps,
+    release_compiled_code as release_compiled_code,
+)
 from .._corrections import (
     edge_distance as edge_distance,
     footprint_coefficient as footprint_coefficient,
