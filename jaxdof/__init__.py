@@ -32,7 +32,6 @@ from ._fit import (
     AbstractForwardModel as AbstractForwardModel,
     DefocusModel as DefocusModel,
     FitResult as FitResult,
-    Treatment as Treatment,
     fit_lens as fit_lens,
     solve_lens as solve_lens,
 )
@@ -48,6 +47,7 @@ from ._raytrace import (
     ray_distance_to_z as ray_distance_to_z,
 )
 from ._render import render as render
+from ._scene import Treatment as Treatment, scene_treatment as scene_treatment
 
 
 try:

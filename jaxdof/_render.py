@@ -30,6 +30,7 @@ from ._filters import (
 )
 from ._filters.common import check_max_radius, is_concrete
 from ._lens import ThinLens, _check_depth, _error_if_invalid, coc_radius
+from ._scene import OCCLUSION_METHOD, scene_treatment
 
 
 logger = logging.getLogger("jaxdof")
@@ -43,7 +44,7 @@ def render(
     method: str | AbstractMethod = "soft",
     max_radius: float | None = None,
     normalize: bool = False,
-    footprint: bool = False,
+    footprint: bool | None = None,
     downsample: int = 1,
     band_rows: int | None = None,
 ) -> Image:
@@ -59,7 +60,14 @@ def render(
     - `method`: a method object (`jaxdof.Soft()`, `jaxdof.Aperture(pattern="ring")`, a subclass
       of `jaxdof.AbstractMethod` of your own) or a built-in's name, as in `coc_filter`. A method
       that reads depth (`method.uses_depth`: `jaxdof.Occlusion`, opt-in) gets `depth` from
-      `render` itself.
+      `render` itself. `"auto"` (`jaxdof.Auto()`) models what the scene needs, by the rules
+      `jaxdof.fit_lens` uses (`jaxdof.scene_treatment` says what it chose, also logged at INFO on
+      the `"jaxdof"` logger): `jaxdof.LocalOcclusion` where depth edges meet circles over half a
+      pixel, the footprint correction where the median circle is under 40 px (unless
+      `footprint` is given), and otherwise the fastest filter with `soft`'s numbers. It needs a
+      concrete depth map and lens: under `jit`/`vmap`/`grad` it renders `soft` (no footprint
+      correction unless asked), and with `band_rows` it cannot render occlusion (logged as a
+      warning). The default `"soft"` renders exactly what it is asked.
     - `normalize`: as in `coc_filter`: divide by the same render of an image of ones, so that the
       pixels within a circle of the frame's edge, whose light partly leaves the frame, keep
       their brightness. Which border treatment when: `normalize=True` for a picture whose
@@ -68,7 +76,8 @@ def render(
       its place) nor the renormalisation (the light inside the frame, rescaled) is that
       light, so leave the band out of the comparison instead: `jaxdof.fit_lens` does by
       default (`border="auto"`: the `ceil(max_radius)` photo pixels along every edge).
-    - `footprint`: opt-in pixel-footprint correction (default off): spread
+    - `footprint`: the pixel-footprint correction (`None`, the default: off, except with
+      `method="auto"`, where the scene decides; `True`/`False` force it): spread
       `footprint_prefilter(image, r)` instead of `image`, so that the blur of every pixel has the
       lens's variance `r^2 / 4`, also for circles under half a pixel, where the plain filter copies
       the pixel (see `jaxdof.footprint_prefilter`; measured against ray tracing in
@@ -133,19 +142,48 @@ def render(
     rows = _check_band_rows(band_rows)
     # circles and window in the input's pixels, s times smaller than the photo's
     window = None if max_radius is None else max_radius * s
-    options = dict(method=method, normalize=normalize, footprint=footprint, s=s)
-    if rows is not None and rows * s < np.shape(image)[0]:
-        # kept as they are (a numpy array stays on the host): each band is converted on its own
-        image_in, depth_in = (
-            x if isinstance(x, jax.Array) else np.asarray(x) for x in (image, depth)
-        )
-        _check_inputs(image_in, depth_in, lens)
-        return _render_bands(image_in, depth_in, lens, rows, window=window, **options)
-    image, depth = jnp.asarray(image), jnp.asarray(depth)
+    bands = rows is not None and rows * s < np.shape(image)[0]
+    if bands:  # kept as they are (a numpy array stays on the host): each band is converted alone
+        image, depth = (x if isinstance(x, jax.Array) else np.asarray(x) for x in (image, depth))
+    else:
+        image, depth = jnp.asarray(image), jnp.asarray(depth)
     _check_inputs(image, depth, lens)
+    method, footprint = _scene_choice(method, depth, lens, s, footprint, bands)
+    options = dict(method=method, normalize=normalize, footprint=footprint, s=s)
+    if bands:
+        assert rows is not None
+        return _render_bands(image, depth, lens, rows, window=window, **options)
+    image, depth = jnp.asarray(image), jnp.asarray(depth)  # already arrays (for the types)
     depth = _error_if_invalid(depth, lens)  # traced: error at run time (equinox.error_if)
     radius = _circles(image, depth, lens, s)
     return _filter(image, depth, radius, window=window, **options)
+
+
+def _scene_choice(method, depth, lens: ThinLens, s: int, footprint, bands: bool):
+    """`(method, footprint)` to render with. `Auto` on a concrete depth map and lens: the scene's
+    treatment (`jaxdof.scene_treatment`, `fit_lens`'s rules), logged; otherwise the method as
+    given and the footprint correction as asked (`None`: off)."""
+    if not isinstance(method, Auto) or not is_concrete(depth, lens):
+        return method, bool(footprint)
+    treatment = scene_treatment(depth, lens, downsample=s, footprint=footprint)
+    occlusion = treatment.occlusion and not bands
+    words = _treatment_words(treatment, occlusion)
+    if treatment.occlusion and bands:  # LocalOcclusion reads depth beyond the band's halo
+        words += f"; not occlusion ({treatment.edge_pixels} edge pixels), which bands cannot render"
+        logger.warning(
+            "render(method='auto', band_rows=...): the scene's depth edges call for occlusion "
+            "(%d edge pixels), which bands cannot render; rendered without it",
+            treatment.edge_pixels,
+        )
+    # `treatment`: the words, for a caller's handler (the CLI prints them)
+    logger.info("render(method='auto'): %s", words, extra={"treatment": words})
+    return (as_method(OCCLUSION_METHOD) if occlusion else method), treatment.footprint
+
+
+def _treatment_words(treatment, occlusion: bool) -> str:
+    words = [f"occlusion ({treatment.edge_pixels} edge pixels)"] if occlusion else []
+    words += ["footprint"] if treatment.footprint else []
+    return ", ".join(words) or "plain (no depth edge that matters, large circles)"
 
 
 def _check_inputs(image, depth, lens: ThinLens) -> None:

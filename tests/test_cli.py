@@ -157,6 +157,23 @@ def test_render_footprint_option(files):
     (d / "out.npy").unlink()
 
 
+def test_render_auto_method_says_what_it_chose(files):
+    """`--method auto`: the scene's treatment (`jaxdof.scene_treatment`), said in the output."""
+    d, hashes, linear, depth = files
+    import jaxdof
+
+    res = _run(["render", "sharp.png", "depth.npy", "-o", "out.npy", "--method", "auto", *LENS], d)
+    assert res.returncode == 0, res.stderr
+    t = jaxdof.scene_treatment(depth, _lens(jaxdof))
+    assert t.footprint, t  # circles of a few pixels
+    assert "treatment: " in res.stdout and "footprint" in res.stdout.split("treatment: ")[1]
+    out = np.load(d / "out.npy")
+    expect = jaxdof.render(linear, depth, _lens(jaxdof), method=t.method, footprint=t.footprint)
+    assert np.max(np.abs(out - np.asarray(expect))) < 1e-5  # float32 there, float64 here
+    _unchanged(d, hashes)
+    (d / "out.npy").unlink()
+
+
 def test_render_downsample_option(files):
     """`--downsample 2`: IMAGE and DEPTH at twice the photo's resolution; the output (and the lens's
     pixel pitch, from --sensor-width) is the photo's."""

@@ -3,6 +3,7 @@ what, that each choice can be forced, and that the result and the CLI report it.
 
 import math
 
+import jax
 import numpy as np
 import pytest
 
@@ -159,3 +160,43 @@ def test_edge_distance_in_bands_is_the_whole_frames(monkeypatch):
         yy, xx = np.mgrid[0:120, 0:50]
         brute = np.minimum(brute, np.hypot(yy - y, xx - x))
     np.testing.assert_allclose(whole, brute, rtol=1e-6)
+
+
+def test_render_auto_models_what_the_scene_needs(caplog):
+    """`render(method="auto")` applies the fit's rules: occlusion and the footprint at a depth
+    edge with blur, the footprint alone on a floor, and neither under `jit` (no concrete depth)."""
+    image, depth = _scene()
+    lens = jaxdof.ThinLens(0.05, 16.0, 1.6, PITCH)  # circles up to 3 px
+    t = jaxdof.scene_treatment(depth, lens)
+    assert (t.method, t.occlusion, t.footprint) == ("local_occlusion", True, True)
+    with caplog.at_level("INFO", logger="jaxdof"):
+        auto = jaxdof.render(image, depth, lens, method="auto")
+    assert "occlusion (" in caplog.text and "footprint" in caplog.text
+    want = jaxdof.render(image, depth, lens, method=LocalOcclusion(), footprint=True)
+    np.testing.assert_array_equal(np.asarray(auto), np.asarray(want))
+    # forcing the footprint off is obeyed, and said in the treatment
+    assert jaxdof.scene_treatment(depth, lens, footprint=False).forced == ("footprint",)
+    no_fp = jaxdof.render(image, depth, lens, method="auto", footprint=False)
+    want = jaxdof.render(image, depth, lens, method=LocalOcclusion())
+    np.testing.assert_array_equal(np.asarray(no_fp), np.asarray(want))
+    # a floor: no edge, so the soft numbers (Auto's fastest equivalent) with the footprint
+    floor = _floor(40, 40).astype(np.float32)
+    t = jaxdof.scene_treatment(floor, lens)
+    assert (t.method, t.occlusion, t.footprint) == ("auto", False, True)
+    got = jaxdof.render(image, floor, lens, method="auto")
+    want = jaxdof.render(image, floor, lens, method="soft", footprint=True)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-6)  # float32 rounding
+    # traced: Auto's fallback, the soft filter without the correction
+    traced = jax.jit(lambda d: jaxdof.render(image, d, lens, method="auto", max_radius=4.0))
+    want = jaxdof.render(image, depth, lens, method="soft", max_radius=4.0)
+    np.testing.assert_allclose(np.asarray(traced(depth)), np.asarray(want), atol=1e-12)
+
+
+def test_render_auto_in_bands_says_it_leaves_occlusion_out(caplog):
+    image, depth = _scene()
+    lens = jaxdof.ThinLens(0.05, 16.0, 1.6, PITCH)
+    with caplog.at_level("WARNING", logger="jaxdof"):
+        got = jaxdof.render(image, depth, lens, method="auto", band_rows=16)
+    assert "bands cannot render" in caplog.text
+    want = jaxdof.render(image, depth, lens, method="soft", footprint=True)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-6)  # float32 rounding

@@ -131,7 +131,11 @@ def _render(args, display: Display) -> int:
         f" in {bands} bands of {rows} rows" if rows else ""
     )
     display.status(what, total=bands if rows else None)
-    with library_checks(), out_of_memory("render", img.array.shape), _band_progress(display, what):
+    with (
+        library_checks(),
+        out_of_memory("render", img.array.shape),
+        _band_progress(display, what) as progress,
+    ):
         out = jaxdof.render(
             img.array,
             depth,
@@ -151,9 +155,10 @@ def _render(args, display: Display) -> int:
     write_image(args.out, out, bits=bits, linear=args.linear, inputs=inputs)
     h, w = out.shape[:2]
     in_bands = f", {bands} bands of {rows} rows" if rows else ""
+    chose = f", treatment: {progress.treatment}" if progress.treatment else ""
     print(
         f"wrote {args.out} ({h}x{w}, blur scale K = {float(lens.blur_scale):.3g} px, largest circle "
-        f"{radius:.3g} px{in_bands}, {time.perf_counter() - t0:.1f} s)"
+        f"{radius:.3g} px{in_bands}{chose}, {time.perf_counter() - t0:.1f} s)"
     )
     return 0
 
@@ -195,7 +200,9 @@ def band_rows(args, shape: tuple[int, ...], window: float) -> int | None:
     run in bands: `InputError` saying what the frame needs and what budget would do.
     """
     s, budget = args.downsample, args.memory
-    options = dict(downsample=s, normalize=args.normalize, footprint=args.footprint)
+    # `--method auto` may turn the footprint correction on (`render`): planned as on
+    footprint = args.method == "auto" if args.footprint is None else args.footprint
+    options = dict(downsample=s, normalize=args.normalize, footprint=footprint)
     # the process (runtime, compiled code) and the command's whole-frame arrays
     cli = _tuning.CLI_MEMORY
     held = int(cli["process"] + cli["per_pixel"] * shape[0] * shape[1])
@@ -259,7 +266,7 @@ def _band_progress(display: Display, what: str):
     logger.addHandler(handler)
     logger.setLevel(logging.DEBUG)
     try:
-        yield
+        yield handler
     finally:
         logger.removeHandler(handler)
         logger.setLevel(level)
@@ -269,8 +276,10 @@ class _BandHandler(logging.Handler):
     def __init__(self, display: Display, what: str):
         super().__init__(logging.DEBUG)
         self.display, self.what = display, what
+        self.treatment: str | None = None  # what `render(method="auto")` chose, in words
 
     def emit(self, record: logging.LogRecord) -> None:
+        self.treatment = getattr(record, "treatment", self.treatment)
         band = getattr(record, "band", None)
         if band is None:
             return

@@ -283,9 +283,10 @@ def _add_footprint_options(g, *, fit: bool = False) -> None:
     else:
         g.add_argument(
             "--footprint",
-            action="store_true",
-            help="correct for the pixel footprint (blur variance r^2/4 at every radius; off by "
-            "default)",
+            action=argparse.BooleanOptionalAction,
+            default=None,
+            help="correct for the pixel footprint (blur variance r^2/4 at every radius) or not "
+            "(--no-footprint); default off, except with --method auto, where the scene decides",
         )
     g.add_argument(
         "--downsample",
