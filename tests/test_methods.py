@@ -29,6 +29,7 @@ from jaxdof import (
     coc_radius,
     fit_lens,
     render,
+    scene_treatment,
 )
 from jaxdof._filters import METHOD_ALIASES, as_method, layered
 from jaxdof._filters.auto import choose_method, max_layers
@@ -751,7 +752,12 @@ def test_render_passes_the_method_and_auto_works_outside_jit():
     image = np.random.default_rng(0).uniform(size=(16, 18, 3))
     depth = np.where(np.arange(18)[None, :] < 9, 2.0, 4.0) + np.zeros((16, 1))
     soft = render(image, depth, lens)
-    assert _err(render(image, depth, lens, method=Auto()), soft) < 1e-12
+    # a depth step with circles of 0.8 px: the scene's treatment (`scene_treatment`), occlusion
+    # and the footprint correction, not the soft render
+    t = scene_treatment(depth, lens)
+    assert (t.method, t.footprint) == ("local_occlusion", True)
+    want = render(image, depth, lens, method=LocalOcclusion(), footprint=True)
+    assert _err(render(image, depth, lens, method=Auto()), want) < 1e-12
     out = render(image, depth, lens, method=Jitter(samples=4, key=KEY))
     assert out.shape == image.shape and _err(out, soft) > 0
     # the options live in the method object: render has no keywords for them
