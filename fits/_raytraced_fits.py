@@ -445,14 +445,23 @@ def default_fit(scene, a, d, x64: bool, options: dict | None = None) -> dict:
 
 
 def run_default(
-    scenes, x64: bool, fp: str, variant: str = "", options: dict | None = None
+    scenes,
+    x64: bool,
+    fp: str,
+    variant: str = "",
+    options: dict | None = None,
+    lenses: tuple[int, ...] | None = None,
 ) -> list[dict]:
     """Every default fit of `scenes` (cached per fingerprint `fp` and precision), or with
-    `options` forced (cached apart under the name `variant`)."""
+    `options` forced (cached apart under the name `variant`); `lenses`: the indices into each
+    scene's `default_lenses` to fit (`None`: all)."""
     folder = CACHE / "default" / f"{fp}_{'f64' if x64 else 'f32'}{variant}"
     out = []
     for scene in scenes:
-        for a, d in default_lenses(scene):
+        chosen = default_lenses(scene)
+        if lenses is not None:
+            chosen = [chosen[i] for i in lenses]
+        for a, d in chosen:
             rec, computed = cached_json(
                 folder / f"{scene}_A{a}_df{d}.json",
                 lambda scene=scene, a=a, d=d: default_fit(scene, a, d, x64, options),

@@ -88,7 +88,7 @@ from jaxdof.internal import ADEQUACY_ALPHA as ALPHA  # noqa: E402
 
 
 # The targets here are `render`'s default model (plus noise): the study fits exactly that model
-# (`fit_lens` would otherwise choose its treatment of a real photo, `jaxdof/_fit/treatment.py`).
+# (`fit_lens` would otherwise choose its treatment of a real photo, `jaxdof/_scene.py`).
 fit_lens = functools.partial(jaxdof.fit_lens, method="soft", footprint=False, edge_weight=False)
 
 

@@ -74,7 +74,7 @@ from jaxdof.internal import auto_levels, max_circle, record_stages, start_lenses
 
 
 # The targets here are `render`'s default model (plus noise): the study fits exactly that model
-# (`fit_lens` would otherwise choose its treatment of a real photo, `jaxdof/_fit/treatment.py`).
+# (`fit_lens` would otherwise choose its treatment of a real photo, `jaxdof/_scene.py`).
 fit_lens = functools.partial(jaxdof.fit_lens, method="soft", footprint=False, edge_weight=False)
 
 

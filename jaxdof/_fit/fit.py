@@ -790,7 +790,8 @@ def fit_lens(
       on with the automatic width, a number: on with that width (photo pixels).
 
     **Treatment.** By default the fit inspects the depth map and the `init` lens and turns on
-    only what the scene needs (`jaxdof/_fit/treatment.py` has the rules and their figures): where
+    only what the scene needs (`jaxdof/_scene.py` has the rules and their figures;
+    `jaxdof.scene_treatment` says what they choose for a depth map and lens): where
     depth edges with circles over half a pixel touch more than 0.5 % of the fitted pixels, the
     occlusion-aware render (`jaxdof.LocalOcclusion()`: occlusion decided per pair of
     pixels against the receiver's own surface, so a floor is no edge, the hidden surfaces filled)
