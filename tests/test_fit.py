@@ -18,7 +18,7 @@ from jax.test_util import check_grads
 
 import jaxdof
 import jaxdof._fit.solve as fit_solve
-from jaxdof import RESULTS, ThinLens, fit_lens, render, solve_lens
+from jaxdof import RESULTS, ThinLens, coc_filter, fit_lens, render, solve_lens
 from jaxdof._fit import (
     auto_levels,
     layout,
@@ -986,6 +986,27 @@ def test_flat_start_does_not_decide_the_fit():
     )
     assert bool(res.status == RESULTS.max_steps), res.message
     assert float(res.lens.f_number) < 8.0
+
+
+def test_a_solution_in_a_flat_region_is_a_result_not_a_refusal():
+    """A photo blurred by one circle everywhere, which no lens renders from a depth ramp: the
+    best fit runs to a focus at the focal length (every circle about the same size), where the
+    focus no longer moves the render. The photos determine the free set at the init lens, so
+    this is a failed fit (degenerate, said why), not the refusal a one-plane scene gets. Seen on
+    a ray-traced thin-poles scene fitted without the occlusion model (`fits/treatments.py`)."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.2, 0.8, (48, 48, 3))
+    depth = np.broadcast_to(1.2 + 3.8 * np.arange(48) / 47, (48, 48))
+    target = coc_filter(image, np.full((48, 48), 1.3))
+    init = ThinLens(0.05, 6.0, 2.4, 1e-5)
+    res = fit_lens(image, depth, target, init)
+    assert not bool(res.success) and bool(res.status == RESULTS.degenerate)
+    assert "though they do at the init lens" in res.message
+    assert not np.isfinite(float(res.stderr["focus_distance"]))
+    # one depth plane: undetermined everywhere, refused as before
+    plane = np.full((48, 48), 2.0)
+    with pytest.raises(ValueError, match="not determined by the data"):
+        fit_lens(image, plane, render(image, plane, ThinLens(0.05, 4.0, 3.0, 1e-5)), init)
 
 
 def test_degeneracy_wording_per_target_pair():

@@ -34,7 +34,7 @@ from .prepare import (
 )
 from .residual import _Model
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
-from .solve import default_solver, finish, fit_starts, restate, run_stage
+from .solve import default_solver, degenerate_at, finish, fit_starts, restate, run_stage
 from .strategies import (
     _COARSE_TOL,
     _check_pyramid,
@@ -574,9 +574,22 @@ def _verdict(run: _Run, result: FitResult, info, r_final, window, notes, allow_d
             _at_infinity(run, info["natural"]),
             float(info["condition"]),
         )
-        if not allow_degenerate:
+        if info.get("determined_at_init", False):
+            # Rank deficient at the best solution but not at the init: the fit ended where the
+            # blur stops depending on a field (e.g. a focus near the focal length, where every
+            # circle is about the same size), a local minimum and no property of the data.
+            notes.append(
+                f"the best solution lies where the photos do not determine "
+                f"{', '.join(_undetermined(info, spec)) or ', '.join(spec.free)} (condition "
+                f"{float(info['condition']):.3g} of the column-scaled Jacobian), though they do "
+                "at the init lens: the fit ended in a flat region of the model, not a free set "
+                "the data cannot determine, and the photo is probably not what the model renders "
+                "there; check the inputs, start from a lens nearer the truth (EXIF) or force a "
+                "treatment of the scene"
+            )
+        elif not allow_degenerate:
             raise ValueError(_degeneracy_text(*why))
-        if code == _DEGENERATE:
+        elif code == _DEGENERATE:
             notes.append(
                 f"free={spec.free}, shared={spec.shared}, {spec.n_targets} target(s): "
                 + degeneracy_reason(*why)
@@ -822,8 +835,10 @@ def fit_lens(
     0 (the data cannot rule out infinity; `message` says so).
 
     **Raises:** `ValueError` for bad inputs (before any solve), and when the data cannot
-    determine the free fields (the column-scaled Jacobian at the best solution is rank
-    deficient), with the reason: `focal_length` and `f_number` both free from one photo (blur
+    determine the free fields (the column-scaled Jacobian is rank deficient at the best solution
+    and at the init lens; rank deficient at the solution only, the fit ended in a flat region of
+    the model, e.g. a focus run to the focal length where every circle is the same size: a
+    result with status `degenerate` and a note saying so, no exception), with the reason: `focal_length` and `f_number` both free from one photo (blur
     depends on the lens only through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity
     (every circle `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose
     photos are all focused at infinity); every circle under half a pixel (the render does not
@@ -920,4 +935,16 @@ def fit_lens(
             return fit_lens(**{**given, "max_radius": window, "tiles": budget})
         notes.append(_tiles_note(chosen, p_full_pixels))
         result = dataclasses.replace(result, tiles=chosen.boxes)
+    if code_of(info["status"]) == _DEGENERATE and not allow_degenerate:
+        info["determined_at_init"] = _determined_at_init(model_r, rows0, args, p)
     return _verdict(run, result, info, r_final, window, notes, allow_degenerate)
+
+
+def _determined_at_init(model: _Model, rows0: np.ndarray, args, p) -> bool:
+    """Whether the photos determine the free set at the init lens (full rank there); `False`
+    also when the test itself fails (the refusal then stands)."""
+    y_init = pack(rows0[:1].astype(p.dtype), args[-1], p.spec.exposure)[0]
+    try:
+        return not bool(run_stage("rank at init", degenerate_at, model, y_init, args, p.spec))
+    except _SOLVER_ERRORS:
+        return False

@@ -272,6 +272,19 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
 
 
 @eqx.filter_jit
+def degenerate_at(model: _Model, y, args, spec: _Spec):
+    """`_statistics`' rank test at a point `y` (no solve): whether the photos leave a free field
+    undetermined there. `fit_lens` asks it at the init lens when the best solution is rank
+    deficient, to tell a free set the data cannot determine (rank deficient everywhere) from a
+    solution that ended where the blur stops depending on a field (a local minimum)."""
+    residual, theta, jac, g = restate(model, y, args)
+    _, _, targets, sqrt_w, layout = args
+    floor = theta_floor(layout, spec.exposure)
+    stats = _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
+    return stats["degenerate"]
+
+
+@eqx.filter_jit
 def restate(model: _Model, y, args):
     """The residual, slot values and Jacobians at a given point `y` (no solve): what
     `fit_starts` hands `finish` for its best start, for a point found otherwise (`fit_lens`
