@@ -332,8 +332,9 @@ FIT_MEMORY = {"fixed": 0.4 * 2**30, "frame": 75.0, "fitted": 640.0}
 
 # --------------------------------------------------------------------------------------------
 # The treatment rules of `fit_lens` and `render(method="auto")` (`jaxdof/_scene.py`): they
-# change the lens a fit returns. Re-measured by `python fits/treatments.py` (the default call against forced
-# treatments on 12 ray-traced scenes x 4 lenses, half held out), not by `fits/tune.py`.
+# change the lens a fit returns. Re-measured by `python fits/treatments.py` (the default call
+# against forced treatments on 12 ray-traced scenes x 4 lenses, half held out), not by
+# `fits/tune.py`.
 # --------------------------------------------------------------------------------------------
 
 #: The footprint correction is on when the starting lens's median circle over the fitted pixels is

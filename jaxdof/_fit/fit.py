@@ -838,9 +838,9 @@ def fit_lens(
     determine the free fields (the column-scaled Jacobian is rank deficient at the best solution
     and at the init lens; rank deficient at the solution only, the fit ended in a flat region of
     the model, e.g. a focus run to the focal length where every circle is the same size: a
-    result with status `degenerate` and a note saying so, no exception), with the reason: `focal_length` and `f_number` both free from one photo (blur
-    depends on the lens only through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity
-    (every circle `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose
+    result with status `degenerate` and a note saying so, no exception), with the reason:
+    `focal_length` and `f_number` both free from one photo (blur depends on the lens only
+    through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity (every circle `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose
     photos are all focused at infinity); every circle under half a pixel (the render does not
     depend on the lens, a zero Jacobian); else the undetermined fields by name.
 
