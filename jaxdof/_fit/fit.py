@@ -840,8 +840,9 @@ def fit_lens(
     the model, e.g. a focus run to the focal length where every circle is the same size: a
     result with status `degenerate` and a note saying so, no exception), with the reason:
     `focal_length` and `f_number` both free from one photo (blur depends on the lens only
-    through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity (every circle `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose
-    photos are all focused at infinity); every circle under half a pixel (the render does not
+    through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity (every circle
+    `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose photos are all
+    focused at infinity); every circle under half a pixel (the render does not
     depend on the lens, a zero Jacobian); else the undetermined fields by name.
 
     **Statistics.** With `J` the Jacobian of the weighted residuals at the solution,
