@@ -46,8 +46,11 @@ FOCAL = 0.05  # the equivalent lens's focal length (m; lens_from_raytracer's def
 
 
 def mitsuba():
-    """The `mitsuba` module with a variant set: `llvm_ad_rgb` when the system LLVM is found, else
-    `scalar_rgb`."""
+    """The `mitsuba` module with a variant set: `llvm_ad_rgb` with LLVM 19 (Debian's
+    `libllvm19`, or `DRJIT_LIBLLVM_PATH` set by the caller), else `scalar_rgb` (the same images,
+    slower). Not an older system LLVM that Dr.Jit would find by itself: LLVM 15 aborts the
+    process (no Python exception) compiling Mitsuba's kernels for AVX-512 ("LLVM ERROR: Cannot
+    select ... fminimum", seen on an Intel Xeon in session 17)."""
     import mitsuba as mi
 
     if mi.variant() is None:
@@ -57,6 +60,10 @@ def mitsuba():
         ):
             if os.path.exists(lib) and "DRJIT_LIBLLVM_PATH" not in os.environ:
                 os.environ["DRJIT_LIBLLVM_PATH"] = lib
+        if "DRJIT_LIBLLVM_PATH" not in os.environ:
+            print("Mitsuba: no LLVM 19 (apt-get install libllvm19): the slower scalar variant")
+            mi.set_variant("scalar_rgb")
+            return mi
         try:
             mi.set_variant("llvm_ad_rgb")
         except Exception:  # no usable LLVM: the scalar variant renders the same images

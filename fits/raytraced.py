@@ -11,8 +11,8 @@ Run (Mitsuba is an optional extra: `pip install -e ".[validate]"`):
     python fits/raytraced.py --fixtures # also rewrite tests/data/raytraced_*.npz
 
 Renders are cached in `fits/.cache/raytraced/` (not committed; about 10 MB) so analysis re-runs
-are cheap. The Mitsuba variant is `llvm_ad_rgb` when the system LLVM (>= 16; Debian: `libllvm19`)
-is found, else `scalar_rgb` (same images, slower). Writes `fits/results/raytraced.md` and `.png`.
+are cheap. The Mitsuba variant is `llvm_ad_rgb` when LLVM 19 (Debian: `libllvm19`) is
+found, else `scalar_rgb` (same scenes, slower; an older system LLVM can abort on AVX-512). Writes `fits/results/raytraced.md` and `.png`.
 
 Layout: `_raytraced_scenes.py` (Mitsuba scenes, renders, lens mapping, CI fixtures),
 `_raytraced_fits.py` (forward-model treatments and fits), `_raytraced_report.py` (the measured
