@@ -991,9 +991,12 @@ def test_flat_start_does_not_decide_the_fit():
 def test_a_solution_in_a_flat_region_is_a_result_not_a_refusal():
     """A photo blurred by one circle everywhere, which no lens renders from a depth ramp: the
     best fit runs to a focus at the focal length (every circle about the same size), where the
-    focus no longer moves the render. The photos determine the free set at the init lens, so
-    this is a failed fit (degenerate, said why), not the refusal a one-plane scene gets. Seen on
-    a ray-traced thin-poles scene fitted without the occlusion model (`fits/treatments.py`)."""
+    focus no longer moves the render. The photos determine the free set at the init lens and
+    contradict the model at the solution (the adequacy test), so this is a failed fit
+    (degenerate, said why), not the refusal a one-plane scene gets (nor a bracket focused at
+    infinity, `test_degeneracy_wording_focus_at_infinity`, whose solution explains its photos).
+    Seen on a ray-traced thin-poles scene fitted without the occlusion model
+    (`fits/treatments.py`)."""
     rng = np.random.default_rng(0)
     image = rng.uniform(0.2, 0.8, (48, 48, 3))
     depth = np.broadcast_to(1.2 + 3.8 * np.arange(48) / 47, (48, 48))
@@ -1002,6 +1005,7 @@ def test_a_solution_in_a_flat_region_is_a_result_not_a_refusal():
     res = fit_lens(image, depth, target, init)
     assert not bool(res.success) and bool(res.status == RESULTS.degenerate)
     assert "though they do at the init lens" in res.message
+    assert not bool(res.adequacy["adequate"])
     assert not np.isfinite(float(res.stderr["focus_distance"]))
     # one depth plane: undetermined everywhere, refused as before
     plane = np.full((48, 48), 2.0)

@@ -582,10 +582,10 @@ def _verdict(run: _Run, result: FitResult, info, r_final, window, notes, allow_d
                 f"the best solution lies where the photos do not determine "
                 f"{', '.join(_undetermined(info, spec)) or ', '.join(spec.free)} (condition "
                 f"{float(info['condition']):.3g} of the column-scaled Jacobian), though they do "
-                "at the init lens: the fit ended in a flat region of the model, not a free set "
-                "the data cannot determine, and the photo is probably not what the model renders "
-                "there; check the inputs, start from a lens nearer the truth (EXIF) or force a "
-                "treatment of the scene"
+                "at the init lens, and the photo is not what the model renders there (the "
+                "adequacy test fails): the fit ended in a flat region of the model, not a free "
+                "set the data cannot determine; check the inputs, start from a lens nearer the "
+                "truth (EXIF) or force a treatment of the scene"
             )
         elif not allow_degenerate:
             raise ValueError(_degeneracy_text(*why))
@@ -835,10 +835,11 @@ def fit_lens(
     0 (the data cannot rule out infinity; `message` says so).
 
     **Raises:** `ValueError` for bad inputs (before any solve), and when the data cannot
-    determine the free fields (the column-scaled Jacobian is rank deficient at the best solution
-    and at the init lens; rank deficient at the solution only, the fit ended in a flat region of
-    the model, e.g. a focus run to the focal length where every circle is the same size: a
-    result with status `degenerate` and a note saying so, no exception), with the reason:
+    determine the free fields (the column-scaled Jacobian at the best solution is rank
+    deficient; unless the photos contradict the model there, by the adequacy test, while they
+    determine the free set at the init lens: the fit ended in a flat region of the model, e.g. a
+    focus run to the focal length where every circle is the same size, and returns status
+    `degenerate` with a note saying so, no exception), with the reason:
     `focal_length` and `f_number` both free from one photo (blur depends on the lens only
     through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity (every circle
     `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose photos are all
@@ -936,7 +937,15 @@ def fit_lens(
             return fit_lens(**{**given, "max_radius": window, "tiles": budget})
         notes.append(_tiles_note(chosen, p_full_pixels))
         result = dataclasses.replace(result, tiles=chosen.boxes)
-    if code_of(info["status"]) == _DEGENERATE and not allow_degenerate:
+    # A rank-deficient solution that the photos contradict (the adequacy test fails there) while
+    # they determine the free set at the init: a fit that ended in a flat region of the model,
+    # not a free set the data cannot determine (that one is refused: a focus bracket all at
+    # infinity is rank deficient only at its solution, which explains the photos).
+    if (
+        code_of(info["status"]) == _DEGENERATE
+        and not allow_degenerate
+        and not bool(result.adequacy["adequate"])
+    ):
         info["determined_at_init"] = _determined_at_init(model_r, rows0, args, p)
     return _verdict(run, result, info, r_final, window, notes, allow_degenerate)
 
