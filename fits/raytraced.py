@@ -12,7 +12,8 @@ Run (Mitsuba is an optional extra: `pip install -e ".[validate]"`):
 
 Renders are cached in `fits/.cache/raytraced/` (not committed; about 10 MB) so analysis re-runs
 are cheap. The Mitsuba variant is `llvm_ad_rgb` when LLVM 19 (Debian: `libllvm19`) is
-found, else `scalar_rgb` (same scenes, slower; an older system LLVM can abort on AVX-512). Writes `fits/results/raytraced.md` and `.png`.
+found, else `scalar_rgb` (same scenes, slower; an older system LLVM can abort on AVX-512).
+Writes `fits/results/raytraced.md` and `.png`.
 
 Layout: `_raytraced_scenes.py` (Mitsuba scenes, renders, lens mapping, CI fixtures),
 `_raytraced_fits.py` (forward-model treatments and fits), `_raytraced_report.py` (the measured

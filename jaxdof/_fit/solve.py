@@ -128,6 +128,13 @@ def _statistics(residual, jac, g, theta, floor, n, used: tuple[int, ...]) -> dic
     )
 
 
+def _statistics_at(residual, jac, g, theta, args, spec: _Spec) -> dict[str, Array]:
+    """`_statistics` with the floors and the residual count of the solve's `args`."""
+    _, _, targets, sqrt_w, layout = args
+    floor = theta_floor(layout, spec.exposure)
+    return _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
+
+
 def _check_model(residual, jac, args, spec: _Spec, band: int) -> dict[str, Array]:
     """The model-adequacy test (`adequacy.adequacy`) at the solution: tiles of the region inside
     the border `band`, every target and channel of a tile together; each tile may also have its
@@ -278,9 +285,7 @@ def degenerate_at(model: _Model, y, args, spec: _Spec):
     deficient, to tell a free set the data cannot determine (rank deficient everywhere) from a
     solution that ended where the blur stops depending on a field (a local minimum)."""
     residual, theta, jac, g = restate(model, y, args)
-    _, _, targets, sqrt_w, layout = args
-    floor = theta_floor(layout, spec.exposure)
-    stats = _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
+    stats = _statistics_at(residual, jac, g, theta, args, spec)
     return stats["degenerate"]
 
 
@@ -300,9 +305,7 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
     width) at the chosen solution, and the few numbers `fit_lens` reads in Python to word the
     message. `args` are the solve's, with the weights it used (the border `band` applied)."""
     y, status, num_steps, residual, theta, jac, g = solution
-    _, _, targets, sqrt_w, layout = args
-    floor = theta_floor(layout, spec.exposure)
-    stats = _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
+    stats = _statistics_at(residual, jac, g, theta, args, spec)
     check = _check_model(residual, jac, args, spec, band)
     result = _assemble(spec, model, (y, status, num_steps, theta), stats, check, args, single)
     info = dict(
@@ -325,9 +328,7 @@ def _solve_one(
     jac, g = _jacobians(model, y, args, jac)
     bad_jac = (status == RESULTS.successful) & ~jnp.all(jnp.isfinite(jac))
     status = RESULTS.where(bad_jac, RESULTS.solver_failed, status)
-    _, _, targets, sqrt_w, layout = args
-    floor = theta_floor(layout, spec.exposure)
-    stats = _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
+    stats = _statistics_at(residual, jac, g, theta, args, spec)
     check = _check_model(residual, jac, args, spec, band)
     return _assemble(spec, model, (y, status, num_steps, theta), stats, check, args, single)
 
