@@ -15,7 +15,7 @@ from jax import lax
 from jaxtyping import Array
 
 from . import _tuning
-from ._corrections import footprint_prefilter
+from ._corrections import FOOTPRINT_REACH, footprint_prefilter
 from ._custom_types import DepthLike, Image, ImageLike
 from ._filters import (
     AbstractMethod,
@@ -122,11 +122,11 @@ def render(
     reads, for an output pixel `p`, only the sources `q` with `|p - q|_inf <= W(sR)` input
     pixels, where `W(x) = ceil(x + 1/2) - 1 <= ceil(x)` is the half-width of the window a disc of
     radius `x` reaches (`Aperture`'s bilinear splats reach one pixel more, and `footprint`'s
-    Laplacian reads one more neighbour). So the photo rows `[a, b)`, input rows `[sa, sb)`, are
+    stencils read `FOOTPRINT_REACH = 2` more). So the photo rows `[a, b)`, input rows `[sa, sb)`, are
     exactly the rows `[sa - lo, sb - lo)` of the render of the input rows `[lo, hi)` with
 
     $$lo = \max(sa - h, 0),\quad hi = \min(sb + h, H),\quad
-      h = s \left\lceil \frac{\lceil sR \rceil + 1 + [\text{footprint}]}{s} \right\rceil$$
+      h = s \left\lceil \frac{\lceil sR \rceil + 1 + 2\,[\text{footprint}]}{s} \right\rceil$$
 
     (`H` the input's height; `h` a multiple of `s` so that the `s x s` blocks stay aligned): every
     source that reaches them is inside, and where the band stops at row 0 or `H` it stops where
@@ -238,12 +238,12 @@ def _check_band_rows(band_rows) -> int | None:
 
 def band_halo(window: float, *, downsample: int = 1, footprint: bool = False) -> int:
     """The halo `h` (input rows) above and below a band that makes it exact (`render`'s
-    **Bands**): `ceil(s R) + 1` (+1 with `footprint`), rounded up to a multiple of `s`.
+    **Bands**): `ceil(s R) + 1` (+2 with `footprint`, `FOOTPRINT_REACH`), rounded up to a multiple of `s`.
 
     - `window`: the filter window `R` in photo pixels (`max_radius`, or the largest circle).
     """
     s = int(downsample)
-    reach = math.ceil(s * float(window)) + 1 + int(bool(footprint))
+    reach = math.ceil(s * float(window)) + 1 + FOOTPRINT_REACH * bool(footprint)
     return s * math.ceil(reach / s)
 
 

@@ -69,9 +69,9 @@ def test_halo():
     assert band_halo(2.5) == 4  # ceil(2.5) + 1
     assert band_halo(3.0) == 4  # an integer radius reaches 3 rows; one more for a splat
     assert band_halo(0.0) == 1
-    assert band_halo(2.5, footprint=True) == 5
+    assert band_halo(2.5, footprint=True) == 6  # its stencils read 2 more rows
     assert band_halo(2.5, downsample=2) == 6  # ceil(5) + 1 = 6, a multiple of 2
-    assert band_halo(2.5, downsample=2, footprint=True) == 8  # 7, rounded up to 8
+    assert band_halo(2.5, downsample=2, footprint=True) == 8  # ceil(5) + 1 + 2
 
 
 # ---------------------------------------------------------------------------------------------
@@ -136,7 +136,7 @@ def _auto_both(lens, band_rows):
 @pytest.mark.slow  # ~10 s of compiling on 2 cores
 def test_bands_with_downsample_footprint_and_a_window():
     """`downsample=2` (bands of photo rows, halos a multiple of 2), the footprint correction (its
-    Laplacian reads one row more) and `normalize`; and a given `max_radius` below the largest
+    stencils read two rows more) and `normalize`; and a given `max_radius` below the largest
     circle (the window, not the circles, sets the halo). Within an ulp of the whole frame (one
     rounding apart where the compiled band fuses the footprint's or the block means' arithmetic
     differently from the whole frame's eager call: 1.1e-16 seen)."""

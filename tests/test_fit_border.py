@@ -93,8 +93,8 @@ def test_border_is_a_weight():
 
 def test_border_follows_the_window():
     """The automatic band is the window the fit used, at every downsample (the window is in the
-    photo's pixels already), one pixel more with the footprint correction, whose Laplacian reads
-    a neighbour."""
+    photo's pixels already), two pixels more with the footprint correction, whose stencils read
+    two neighbours."""
     image, depth, photo = cropped_scene(seed=3)
     res = fit_lens(
         image, depth, photo, lens(n=2.4), free=FREE, starts=1, **EXACT
@@ -104,8 +104,8 @@ def test_border_follows_the_window():
     model = jaxdof.DefocusModel
     assert model().border_band(6.0) == model(downsample=2).border_band(6.0) == 6
     assert model(downsample=2).border_band(5.3) == 6  # ceil(ceil(10.6) / 2) = ceil(5.3)
-    assert model(footprint=True).border_band(6.0) == 7
-    assert model(downsample=2, footprint=True).border_band(5.5) == 6  # ceil((11 + 1) / 2)
+    assert model(footprint=True).border_band(6.0) == 8
+    assert model(downsample=2, footprint=True).border_band(5.5) == 7  # ceil((11 + 2) / 2)
     # Each pyramid level: the band of that level's window, or a given band halved (rounded up).
     assert strategies.level_band(None, model(), 3.0, 1) == 3
     assert strategies.level_band(5, model(), 3.0, 1) == 3

@@ -778,7 +778,7 @@ def fit_lens(
       ray-traced slanted plane, `K` came out 8-12 % small with them, 1.8 % without).
       `"auto"` (default) or `True`: leave out the band the window reaches, the forward model's
       `border_band(max_radius)` photo pixels (`ceil(max_radius)` for the default model, at every
-      `downsample`; one more with `footprint`), recomputed with the window (refits, each pyramid
+      `downsample`; two more with `footprint`), recomputed with the window (refits, each pyramid
       level with its own) for every target. An int: that band in photo pixels (halved per
       pyramid level, rounded up). `False` or `0`: keep every pixel. The band is a 0 weight
       (multiplied into `weight`), so it shares the compiled solve. If it would leave no pixel

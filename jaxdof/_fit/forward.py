@@ -24,7 +24,7 @@ import numpy as np
 from equinox import AbstractVar
 from jaxtyping import Array, Float
 
-from .._corrections import footprint_prefilter
+from .._corrections import FOOTPRINT_REACH, footprint_prefilter
 from .._custom_types import DepthLike, ImageLike
 from .._filters import AbstractMethod, as_method, coc_filter
 from .._lens import (
@@ -198,10 +198,10 @@ class DefocusModel(AbstractForwardModel):
 
     def border_band(self, max_radius: float) -> int:
         """How far (photo pixels) light travels: `ceil(s R)` input pixels for a window of `R`
-        photo pixels with `downsample = s` (one more with `footprint`, whose Laplacian reads a
-        neighbour), that is `ceil(ceil(s R) / s) = ceil(R)` photo pixels without it."""
+        photo pixels with `downsample = s` (`FOOTPRINT_REACH = 2` more with `footprint`, whose
+        stencils read two neighbours), that is `ceil(ceil(s R) / s) = ceil(R)` photo pixels without it."""
         s = int(self.downsample)
-        return math.ceil((math.ceil(s * max_radius) + int(bool(self.footprint))) / s)
+        return math.ceil((math.ceil(s * max_radius) + FOOTPRINT_REACH * bool(self.footprint)) / s)
 
     def photo_shape(self, image_shape: tuple[int, ...]) -> tuple[int, ...]:
         """The image's shape with `(H, W)` divided by `downsample` (checked to divide them)."""

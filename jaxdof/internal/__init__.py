@@ -28,8 +28,9 @@ What is here (re-exports only):
 - **Model adequacy**: `adequacy` (the between-tile test on a fit's residual and Jacobian),
   `rounding_noise` (its noise floor), `ADEQUACY_ALPHA` (its default significance level).
 - **Corrections**: `edge_distance` (distance to the nearest depth edge, under `jaxdof.edge_weight`),
-  `kernel_variance` (the filter kernel's variance) and `footprint_coefficient` (its table, which
-  `jaxdof.footprint_prefilter` reads), and the
+  `kernel_variance` (the filter kernel's variance), `footprint_coefficient` (its table, which
+  `jaxdof.footprint_prefilter` reads) and `fourth_order_coefficients` (the prefilter's two
+  fourth-order terms, fitted to the lens's transfer function), and the
   study-only candidates that lost to `footprint_prefilter` against ray tracing
   (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
 - **Memory**: `estimate_memory` (a render's), `estimate_fit_memory` (a fit's; the CLI's
@@ -51,6 +52,7 @@ from .._compiled import (
 from .._corrections import (
     edge_distance as edge_distance,
     footprint_coefficient as footprint_coefficient,
+    fourth_order_coefficients as fourth_order_coefficients,
     kernel_variance as kernel_variance,
 )
 from .._filters.aperture import aperture_filter as aperture_filter
