@@ -540,8 +540,18 @@ def one_fit(image, depth, clean, sigma, lens, rng) -> dict:
     n, d_f = float(res.lens.f_number), float(res.lens.focus_distance)
     grad_k = np.array([-1 / n, -1 / (d_f - F)])
     k_se = float(np.sqrt(grad_k @ np.asarray(res.covariance) @ grad_k) * blur_scale(n, d_f))
+    # The reference: the least-squares solution nearest the truth (one start at the truth, steps
+    # to spare). Where the default call's loss is no higher, its answer is the estimator's (the
+    # maximum-likelihood one for Gaussian noise), whatever its distance from the truth.
+    ref = fit_lens(
+        image, depth, target, lens, free=FREE, max_radius=WINDOW, starts=1, max_steps=1000
+    )
+    n_r, d_r = float(ref.lens.f_number), float(ref.lens.focus_distance)
     return dict(
         est=[n, d_f, blur_scale(n, d_f)],
+        est_ref=[n_r, d_r, blur_scale(n_r, d_r)],
+        # the default's loss above the reference's, relative (> 0: the search missed a better point)
+        loss_gap=float((res.loss - ref.loss) / ref.loss),
         se=[float(res.stderr["f_number"]), float(res.stderr["focus_distance"]), k_se],
         ok=bool(res.success),
         # the adequacy test fired on a target the model explains: a false alarm
@@ -560,9 +570,14 @@ def cell_row(name, sigma, image, depth, lens, fits, walls) -> dict:
         bound = np.array([c[0], c[1], ck])
     else:
         bound = np.zeros(3)
+    ref = np.array([f["est_ref"] for f in fits])
+    gap = np.array([f["loss_gap"] for f in fits])
     return dict(
         scene=name,
         sigma=sigma,
+        rmse_ref=np.sqrt(np.mean((ref - truth) ** 2, axis=0)),
+        # trials whose default loss is above the reference's by more than rounding (1e-9)
+        search_missed=float(np.mean(gap > 1e-9)),
         success=float(np.mean([f["ok"] for f in fits])),
         fired=float(np.mean([f.get("fired", False) for f in fits])),
         rmse=np.sqrt(np.mean((est - truth) ** 2, axis=0)),
@@ -626,8 +641,11 @@ def bracket_study(sc, rng, n_bracket) -> np.ndarray:
 
 
 def report(raw, quick, tag=""):
+    # Runs before 2026-12-03 have no reference fits: their columns read nan.
+    missing = dict(rmse_ref=[np.nan] * 3, search_missed=np.nan)
     rows = [
-        {k: (np.array(v) if isinstance(v, list) else v) for k, v in r.items()} for r in raw["rows"]
+        {k: (np.array(v) if isinstance(v, list) else v) for k, v in {**missing, **r}.items()}
+        for r in raw["rows"]
     ]
     write(
         rows,
@@ -723,12 +741,12 @@ def conditions_lines(cost, compile_s, trials, total, quick) -> list[str]:
 def recovery_lines(rows) -> list[str]:
     md = ["## 1. One photo: `f_number` and `focus_distance` from wrong starts\n"]
     md.append(
-        "RMSE over the trials about the truth; `CRB` the Cramér-Rao standard deviation at the truth; `stderr` the mean reported standard error; `spread` the sample standard deviation of the estimates. K in pixels, d_f in metres.\n"
+        "RMSE over the trials about the truth; `CRB` the Cramér-Rao standard deviation at the truth; `stderr` the mean reported standard error; `spread` the sample standard deviation of the estimates. K in pixels, d_f in metres. `reference`: the same photos fitted from the truth itself (one start, up to 1000 steps), the least-squares solution nearest the truth; `search missed`: the share of trials where the default call ended at a higher loss than that reference (its search, not the data, to blame).\n"
     )
     md.append(
-        "| scene | sigma | success | adequacy fired | max rel err N / d_f / K | RMSE N | CRB N | stderr N | RMSE d_f | CRB d_f | stderr d_f | RMSE K | CRB K | RMSE/CRB (N, d_f, K) | stderr/spread (N, d_f) | median steps | median wall (s) |"
+        "| scene | sigma | success | adequacy fired | max rel err N / d_f / K | RMSE N | CRB N | stderr N | RMSE d_f | CRB d_f | stderr d_f | RMSE K | CRB K | RMSE/CRB (N, d_f, K) | reference RMSE/CRB (N, d_f, K) | search missed | stderr/spread (N, d_f) | median steps | median wall (s) |"
     )
-    md.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    md.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         ratio = r["rmse"] / np.where(r["crb"] > 0, r["crb"], np.nan)
         sr = r["stderr"][:2] / np.where(r["spread"][:2] > 0, r["spread"][:2], np.nan)
@@ -738,6 +756,8 @@ def recovery_lines(rows) -> list[str]:
             + f" | {fmt(r['rmse'][0])} | {fmt(r['crb'][0])} | {fmt(r['stderr'][0])} | {fmt(r['rmse'][1])} | {fmt(r['crb'][1])} | {fmt(r['stderr'][1])} | {fmt(r['rmse'][2])} | {fmt(r['crb'][2])} | "
             + ", ".join(fmt(x, 3) for x in ratio)
             + " | "
+            + ", ".join(fmt(x, 3) for x in r["rmse_ref"] / np.where(r["crb"] > 0, r["crb"], np.nan))
+            + f" | {r['search_missed']:.2f} | "
             + ", ".join(fmt(x, 3) for x in sr)
             + f" | {r['steps']:g} | {fmt(r['wall'], 2)} |"
         )
@@ -921,12 +941,33 @@ def conclusions(rows, bracket, timing, ratios, srat, speeds):
         "around 1 by that much; the median is the estimate of efficiency."
     )
     worst_cell = max((r for r in rows if r["sigma"] == 0.03), key=lambda r: r["max_rel"].max())
+    missed = max(r["search_missed"] for r in rows if r["sigma"] > 0)
+    ref_high = np.array([r["rmse_ref"] / r["crb"] for r in rows if r["sigma"] == 0.03])
+    whose = (
+        "the estimator's, not the search's"
+        if worst_cell["search_missed"] == 0
+        else "partly the search's"
+        if worst_cell["search_missed"] > 0
+        else "of unknown origin (no reference fits in this run)"
+    )
     claims.append(
         f"The worst cell at sigma = 0.03 ({worst_cell['scene']}, largest relative error "
-        f"{worst_cell['max_rel'].max():.0%}) holds a fit settled in another basin: at this noise "
-        "the 12 x 12 pixels inside the 6 px border band of a 24 x 24 frame do not always tell "
-        "the basins apart (its success rate is "
-        f"{worst_cell['success']:.2f}). Its RMSE is not the estimator's spread."
+        f"{worst_cell['max_rel'].max():.0%}, RMSE/CRB "
+        + ", ".join(f"{x:.2f}" for x in worst_cell["rmse"] / worst_cell["crb"])
+        + f") is {whose}: in {1 - worst_cell['search_missed']:.0%} of its trials the default "
+        "call ended at a loss no higher than the fit started from the truth itself, so where it "
+        "lands far off, a lens far off explains that noisy photo at least as well as the one near "
+        "the truth (the 12 x 12 pixels inside the 6 px border band of a 24 x 24 frame, with "
+        "circles of 0-2 px where the render's curvature is largest, do not tell the two apart). "
+        f"The fits from the truth have RMSE/CRB up to {ref_high.max():.2f} at this noise"
+        + (
+            ": the Cramér-Rao bound, a local (linearised) bound, is not attained there by least "
+            "squares, so the 1.3 goal cannot be met at sigma = 0.03 by a better search."
+            if ref_high.max() > 1.3
+            else "."
+        )
+        + " Over every noisy cell the default call's search ended above the reference's loss in "
+        f"at most {missed:.0%} of the trials."
     )
     # The estimator is efficient where the noise is small: the median ratio is 1 within the
     # sampling error of a median over the cells, and no cell is off by more than ~3 sampling sigmas.
