@@ -550,8 +550,9 @@ def one_fit(image, depth, clean, sigma, lens, rng) -> dict:
     return dict(
         est=[n, d_f, blur_scale(n, d_f)],
         est_ref=[n_r, d_r, blur_scale(n_r, d_r)],
-        # the default's loss above the reference's, relative (> 0: the search missed a better point)
-        loss_gap=float((res.loss - ref.loss) / ref.loss),
+        # the default's loss above the reference's (> floor: the search missed a better point)
+        loss_gap=float(res.loss - ref.loss),
+        loss_floor=float(1e-9 * ref.loss + 1e-12 * 0.5 * np.sum(np.square(target))),
         se=[float(res.stderr["f_number"]), float(res.stderr["focus_distance"]), k_se],
         ok=bool(res.success),
         # the adequacy test fired on a target the model explains: a false alarm
@@ -571,13 +572,20 @@ def cell_row(name, sigma, image, depth, lens, fits, walls) -> dict:
     else:
         bound = np.zeros(3)
     ref = np.array([f["est_ref"] for f in fits])
-    gap = np.array([f["loss_gap"] for f in fits])
+    higher = np.array([f["loss_gap"] > f["loss_floor"] for f in fits])
+    # ended elsewhere: more than 3 Cramér-Rao deviations from the reference in N or d_f (or,
+    # noise-free, by more than the solver's tolerance); a fit's own standard error can be large
+    # exactly where it ended far off (a flatter region), so it is no yardstick here
+    far = 3 * bound[:2] + 1e-6 * np.abs(ref[:, :2])
+    elsewhere = np.any(np.abs(est - ref)[:, :2] > far, axis=1)
     return dict(
         scene=name,
         sigma=sigma,
         rmse_ref=np.sqrt(np.mean((ref - truth) ** 2, axis=0)),
-        # trials whose default loss is above the reference's by more than rounding (1e-9)
-        search_missed=float(np.mean(gap > 1e-9)),
+        # trials that ended away from the reference at a loss no higher (the data's own best
+        # lens is there) and at a higher loss (the search missed the better point)
+        elsewhere_lower=float(np.mean(elsewhere & ~higher)),
+        elsewhere_higher=float(np.mean(elsewhere & higher)),
         success=float(np.mean([f["ok"] for f in fits])),
         fired=float(np.mean([f.get("fired", False) for f in fits])),
         rmse=np.sqrt(np.mean((est - truth) ** 2, axis=0)),
@@ -642,7 +650,7 @@ def bracket_study(sc, rng, n_bracket) -> np.ndarray:
 
 def report(raw, quick, tag=""):
     # Runs before 2026-12-03 have no reference fits: their columns read nan.
-    missing = dict(rmse_ref=[np.nan] * 3, search_missed=np.nan)
+    missing = dict(rmse_ref=[np.nan] * 3, elsewhere_lower=np.nan, elsewhere_higher=np.nan)
     rows = [
         {k: (np.array(v) if isinstance(v, list) else v) for k, v in {**missing, **r}.items()}
         for r in raw["rows"]
@@ -741,10 +749,10 @@ def conditions_lines(cost, compile_s, trials, total, quick) -> list[str]:
 def recovery_lines(rows) -> list[str]:
     md = ["## 1. One photo: `f_number` and `focus_distance` from wrong starts\n"]
     md.append(
-        "RMSE over the trials about the truth; `CRB` the Cramér-Rao standard deviation at the truth; `stderr` the mean reported standard error; `spread` the sample standard deviation of the estimates. K in pixels, d_f in metres. `reference`: the same photos fitted from the truth itself (one start, up to 1000 steps), the least-squares solution nearest the truth; `search missed`: the share of trials where the default call ended at a higher loss than that reference (its search, not the data, to blame).\n"
+        "RMSE over the trials about the truth; `CRB` the Cramér-Rao standard deviation at the truth; `stderr` the mean reported standard error; `spread` the sample standard deviation of the estimates. K in pixels, d_f in metres. `reference`: the same photos fitted from the truth itself (one start, up to 1000 steps), the least-squares solution nearest the truth; `elsewhere`: the share of trials where the default call ended more than 3 CRB (in N or d_f) from that reference, at a loss no higher than the reference's (the photo's own best fit is there: the estimator's error) or higher (the search missed the better point).\n"
     )
     md.append(
-        "| scene | sigma | success | adequacy fired | max rel err N / d_f / K | RMSE N | CRB N | stderr N | RMSE d_f | CRB d_f | stderr d_f | RMSE K | CRB K | RMSE/CRB (N, d_f, K) | reference RMSE/CRB (N, d_f, K) | search missed | stderr/spread (N, d_f) | median steps | median wall (s) |"
+        "| scene | sigma | success | adequacy fired | max rel err N / d_f / K | RMSE N | CRB N | stderr N | RMSE d_f | CRB d_f | stderr d_f | RMSE K | CRB K | RMSE/CRB (N, d_f, K) | reference RMSE/CRB (N, d_f, K) | elsewhere, lower / higher loss | stderr/spread (N, d_f) | median steps | median wall (s) |"
     )
     md.append("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
@@ -757,7 +765,7 @@ def recovery_lines(rows) -> list[str]:
             + ", ".join(fmt(x, 3) for x in ratio)
             + " | "
             + ", ".join(fmt(x, 3) for x in r["rmse_ref"] / np.where(r["crb"] > 0, r["crb"], np.nan))
-            + f" | {r['search_missed']:.2f} | "
+            + f" | {r['elsewhere_lower']:.2f} / {r['elsewhere_higher']:.2f} | "
             + ", ".join(fmt(x, 3) for x in sr)
             + f" | {r['steps']:g} | {fmt(r['wall'], 2)} |"
         )
@@ -941,33 +949,25 @@ def conclusions(rows, bracket, timing, ratios, srat, speeds):
         "around 1 by that much; the median is the estimate of efficiency."
     )
     worst_cell = max((r for r in rows if r["sigma"] == 0.03), key=lambda r: r["max_rel"].max())
-    missed = max(r["search_missed"] for r in rows if r["sigma"] > 0)
-    ref_high = np.array([r["rmse_ref"] / r["crb"] for r in rows if r["sigma"] == 0.03])
-    whose = (
-        "the estimator's, not the search's"
-        if worst_cell["search_missed"] == 0
-        else "partly the search's"
-        if worst_cell["search_missed"] > 0
-        else "of unknown origin (no reference fits in this run)"
-    )
+    noisy = [r for r in rows if r["sigma"] > 0]
+    missed = max(r["elsewhere_higher"] for r in noisy)
+    ref_ratio = np.array([r["rmse_ref"] / r["crb"] for r in noisy])
     claims.append(
         f"The worst cell at sigma = 0.03 ({worst_cell['scene']}, largest relative error "
         f"{worst_cell['max_rel'].max():.0%}, RMSE/CRB "
         + ", ".join(f"{x:.2f}" for x in worst_cell["rmse"] / worst_cell["crb"])
-        + f") is {whose}: in {1 - worst_cell['search_missed']:.0%} of its trials the default "
-        "call ended at a loss no higher than the fit started from the truth itself, so where it "
-        "lands far off, a lens far off explains that noisy photo at least as well as the one near "
-        "the truth (the 12 x 12 pixels inside the 6 px border band of a 24 x 24 frame, with "
-        "circles of 0-2 px where the render's curvature is largest, do not tell the two apart). "
-        f"The fits from the truth have RMSE/CRB up to {ref_high.max():.2f} at this noise"
-        + (
-            ": the Cramér-Rao bound, a local (linearised) bound, is not attained there by least "
-            "squares, so the 1.3 goal cannot be met at sigma = 0.03 by a better search."
-            if ref_high.max() > 1.3
-            else "."
-        )
-        + " Over every noisy cell the default call's search ended above the reference's loss in "
-        f"at most {missed:.0%} of the trials."
+        + f"): {worst_cell['elsewhere_lower']:.0%} of its trials ended far from the fit started "
+        "at the truth at a loss no higher than that fit's (a lens far off explains that noisy "
+        "photo at least as well: the 12 x 12 pixels inside the 6 px border band of a 24 x 24 "
+        "frame, with circles of 0-2 px, do not tell the two apart), and "
+        f"{worst_cell['elsewhere_higher']:.0%} at a higher loss (the search's miss). The fits "
+        "from the truth have RMSE/CRB "
+        + ", ".join(f"{x:.2f}" for x in worst_cell["rmse_ref"] / worst_cell["crb"])
+        + f" there, and {ref_ratio.min():.2f}-{ref_ratio.max():.2f} over every noisy cell: the "
+        "local least-squares solution is efficient; the excess in that cell is the global "
+        "least-squares estimate's own, which a better search would not remove. Over every noisy "
+        f"cell the default call's search missed a better point far off in at most {missed:.0%} "
+        "of the trials."
     )
     # The estimator is efficient where the noise is small: the median ratio is 1 within the
     # sampling error of a median over the cells, and no cell is off by more than ~3 sampling sigmas.
