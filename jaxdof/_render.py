@@ -80,8 +80,9 @@ def render(
       `method="auto"`, where the scene decides; `True`/`False` force it): spread
       `footprint_prefilter(image, r)` instead of `image`, so that the blur of every pixel has the
       lens's variance `r^2 / 4`, also for circles under half a pixel, where the plain filter copies
-      the pixel (see `jaxdof.footprint_prefilter`; measured against ray tracing in
-      `fits/results/raytraced.md`).
+      the pixel, and, for circles under 3 px, the lens's transfer function at high frequencies to
+      a least-squares fit (see `jaxdof.footprint_prefilter`; measured against ray tracing in
+      `fits/results/raytraced.md` and `fits/results/footprint_order.md`).
     - `downsample`: the image and depth map are `s = downsample` times the photo's resolution in
       each axis (a pixel-shift or higher-resolution capture of the all-in-focus scene; the lens's
       `pixel_pitch` stays the photo's). The scatter runs at that resolution, with circles of

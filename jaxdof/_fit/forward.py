@@ -137,8 +137,10 @@ class DefocusModel(AbstractForwardModel):
     - `method`: how a circle spreads a pixel's light (default `"soft"`, the exact coverage). Its
       output must be differentiable with respect to the circle radii to drive a fit
       (`differentiable_in_radius`; `fit_lens` refuses the others).
-    - `footprint`: the opt-in pixel-footprint correction (default off): it removes the blur-scale
-      bias of a few percent at circles of 1-3 px on ray-traced photos (`fits/results/raytraced.md`).
+    - `footprint`: the opt-in pixel-footprint correction (default off; `fit_lens` turns it on where
+      small circles dominate): it removes the blur-scale bias of a few percent at circles of 1-3 px
+      on ray-traced photos, and of up to 14 % on finely textured ones with circles under 1.5 px
+      (`fits/results/raytraced.md`, `fits/results/footprint_order.md`).
     - `downsample`: the image and depth are this many times the photo's resolution in each axis
       (a pixel-shift capture, say): the photo is the image's `(H, W)` divided by it. Default 1.
       Each render costs about `downsample^2` times more.
