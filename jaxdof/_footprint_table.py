@@ -7,9 +7,10 @@ $$x - c_1(r)\,\Delta x + c_2(r)\,\Delta^2 x + c_3(r)\,\partial_{xx}\partial_{yy}
 (5-point Laplacian `Delta`, second differences `d_xx`, `d_yy`, per pixel for its own circle `r`)
 before `jaxdof.coc_filter` spreads it. `c_1` matches the second moment (`_corrections.py`). The
 two fourth-order terms change neither the light nor the variance; they bend the transfer function
-at high spatial frequencies, where matching the second moment alone leaves the render up to 0.2
-off the lens's (at `r ~ 1` px and 0.9 times the Nyquist frequency, under-blurred by the filter,
-which scales with the overlap kernel's square shape; measured in `fits/results/footprint_order.md`).
+at high spatial frequencies, where matching the second moment alone leaves the transfer function
+up to 0.21 off the lens's at circles of 0.6-1 px (the largest error over the band; along a row at
+the Nyquist frequency `r = 0.8` passes 0.58 where the disc passes 0.39: the overlap kernel is
+square where the disc is round; `fits/results/footprint_order.md`).
 
 **How `c_2`, `c_3` are chosen.** For each `r` the transfer function of the corrected filter,
 `(1 + c_1 lambda + c_2 lambda^2 + c_3 mu) K_r(w)` with `lambda = 4 - 2 cos w_x - 2 cos w_y`,
