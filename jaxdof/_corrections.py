@@ -272,12 +272,17 @@ def footprint_coefficient(radius: ArrayLike) -> jax.Array:
     c_tab, dc_tab = jnp.asarray(_C_TABLE, dtype), jnp.asarray(_DC_TABLE, dtype)
     r0, r1 = nodes[i], nodes[i + 1]
     h = r1 - r0
-    t = (rc - r0) / h
+    inside = _hermite((rc - r0) / h, h, c_tab, dc_tab, i)
+    return jnp.where(r < 0.5, -r * r / 8, inside)
+
+
+def _hermite(t, h, values, slopes, i):
+    """The cubic Hermite segment `i` of a table (`values` and `slopes` at its nodes, segments of
+    width `h`) at the fraction `t` in `[0, 1]` of the segment."""
     t2 = t * t
     t3 = t2 * t
-    inside = (2 * t3 - 3 * t2 + 1) * c_tab[i] + (3 * t2 - 2 * t3) * c_tab[i + 1]
-    inside = inside + h * ((t3 - 2 * t2 + t) * dc_tab[i] + (t3 - t2) * dc_tab[i + 1])
-    return jnp.where(r < 0.5, -r * r / 8, inside)
+    ends = (2 * t3 - 3 * t2 + 1) * values[i] + (3 * t2 - 2 * t3) * values[i + 1]
+    return ends + h * ((t3 - 2 * t2 + t) * slopes[i] + (t3 - t2) * slopes[i + 1])
 
 
 _C2 = np.asarray(_footprint_table.C2, np.float64)
@@ -312,14 +317,9 @@ def fourth_order_coefficients(radius: ArrayLike) -> tuple[jax.Array, jax.Array]:
     # The segment is chosen outside autodiff; within it the cubic is differentiable in r.
     i = jnp.clip(jnp.floor(jax.lax.stop_gradient(rc) / step), 0, n - 1).astype(jnp.int32)
     t = rc / step - i.astype(dtype)
-    t2 = t * t
-    t3 = t2 * t
-    h00, h01 = 2 * t3 - 3 * t2 + 1, 3 * t2 - 2 * t3
-    h10, h11 = (t3 - 2 * t2 + t) * step, (t3 - t2) * step
 
     def interp(values, slopes):
-        v, d = jnp.asarray(values, dtype), jnp.asarray(slopes, dtype)
-        return h00 * v[i] + h01 * v[i + 1] + h10 * d[i] + h11 * d[i + 1]
+        return _hermite(t, step, jnp.asarray(values, dtype), jnp.asarray(slopes, dtype), i)
 
     return interp(_C2, _DC2), interp(_C3, _DC3)
 
