@@ -190,6 +190,7 @@ def fit_cached(
     )
 
     def fit():
+        release_compiled_code()  # a long study would reach the kernel's limit of memory maps
         pin, dist, thin, _ = load_scene(name)
         z = z_depth(dist)  # the weights are on the photo's pixels
         pin_in, z_in = (pin, z) if scale == 1 else load_scene_fine(name, scale)
