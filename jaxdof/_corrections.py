@@ -131,12 +131,29 @@ def _checked_image(image: ImageLike) -> jax.Array:
     return x
 
 
+def _dxx(a: jax.Array) -> jax.Array:
+    """Second difference along rows (axis 0), one row shorter at either end."""
+    return a[:-2] - 2 * a[1:-1] + a[2:]
+
+
+def _dyy(a: jax.Array) -> jax.Array:
+    """Second difference along columns (axis 1), one column shorter at either end."""
+    return a[:, :-2] - 2 * a[:, 1:-1] + a[:, 2:]
+
+
+def _laplacian(p: jax.Array) -> jax.Array:
+    """The 5-point Laplacian of the interior of `p` (one ring smaller on every side)."""
+    return _dxx(p)[:, 1:-1] + _dyy(p)[1:-1]
+
+
+def _edge_padded(x: jax.Array, width: int) -> jax.Array:
+    return jnp.pad(x, [(width, width), (width, width)] + [(0, 0)] * (x.ndim - 2), mode="edge")
+
+
 def _image_and_laplacian(image: ImageLike) -> tuple[jax.Array, jax.Array]:
     """The checked image `(H, W[, C])` and its 5-point discrete Laplacian (edge pixels repeated)."""
     x = _checked_image(image)
-    pad = [(1, 1), (1, 1)] + [(0, 0)] * (x.ndim - 2)
-    p = jnp.pad(x, pad, mode="edge")
-    return x, p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * x
+    return x, _laplacian(_edge_padded(x, 1))
 
 
 # How far (pixels, along a row or column) `footprint_prefilter` reads: its biharmonic term reaches
@@ -147,17 +164,9 @@ FOOTPRINT_REACH = 2
 def _stencils(x: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     """The 5-point Laplacian, its square (13 points) and the mixed difference `d_xx d_yy` (9 points)
     of `x` `(H, W[, C])`, edge pixels repeated (the Laplacian is `_image_and_laplacian`'s)."""
-    pad = [(2, 2), (2, 2)] + [(0, 0)] * (x.ndim - 2)
-    p = jnp.pad(x, pad, mode="edge")
-
-    def dxx(a):
-        return a[:-2] - 2 * a[1:-1] + a[2:]
-
-    def dyy(a):
-        return a[:, :-2] - 2 * a[:, 1:-1] + a[:, 2:]
-
-    lap = dxx(p)[:, 1:-1] + dyy(p)[1:-1]  # (H + 2, W + 2): one ring beyond the frame
-    return lap[1:-1, 1:-1], dxx(lap)[:, 1:-1] + dyy(lap)[1:-1], dxx(dyy(p))[1:-1, 1:-1]
+    p = _edge_padded(x, FOOTPRINT_REACH)
+    lap = _laplacian(p)  # (H + 2, W + 2): one ring beyond the frame
+    return lap[1:-1, 1:-1], _laplacian(lap), _dxx(_dyy(p))[1:-1, 1:-1]
 
 
 @jax.custom_jvp
@@ -360,9 +369,9 @@ def footprint_prefilter(image: ImageLike, radius: RadiusLike) -> Image:
     so a fit sees the focus plane's small circles.
 
     **Fourth order.** Matching the second moment leaves the transfer function off the lens's at
-    high frequencies: at `r = 0.8` px the corrected kernel passes 0.58 of the Nyquist frequency
-    along a row where the disc passes 0.39 (the overlap kernel is square where the disc is round), which biases fits on finely
-    textured scenes (a blur scale 13-14 % short on the ray-traced `texture` scene with circles
+    high frequencies: at `r = 0.8` px the kernel with the second-order correction alone passes
+    0.58 of the Nyquist frequency along a row where the disc passes 0.39 (the overlap kernel is
+    square where the disc is round), which biases fits on finely textured scenes (a blur scale 13-14 % short on the ray-traced `texture` scene with circles
     under 1.5 px). `c_2` and `c_3` change neither the light nor the variance (`Delta^2` and
     `d_xx d_yy` have zero sum and zero second moment); they are fitted per radius to the disc's
     transfer function over the band `|w| <= pi` by least squares, and are zero from 3 px on, where

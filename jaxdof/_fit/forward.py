@@ -201,7 +201,8 @@ class DefocusModel(AbstractForwardModel):
     def border_band(self, max_radius: float) -> int:
         """How far (photo pixels) light travels: `ceil(s R)` input pixels for a window of `R`
         photo pixels with `downsample = s` (`FOOTPRINT_REACH = 2` more with `footprint`, whose
-        stencils read two neighbours), that is `ceil(ceil(s R) / s) = ceil(R)` photo pixels without it."""
+        stencils read two neighbours), that is `ceil(ceil(s R) / s) = ceil(R)` photo pixels
+        without it."""
         s = int(self.downsample)
         return math.ceil((math.ceil(s * max_radius) + FOOTPRINT_REACH * bool(self.footprint)) / s)
 
