@@ -738,7 +738,9 @@ def fit_lens(
     - `starts`: number of starting points (default 4 when the focus distance is free, else 3): the
       `init` lens, then focus distances spread evenly in diopters over the scene's depth range
       (keeping `K` through `N` where possible), which covers the near/far ambiguity; with the focus
-      distance fixed, `K` spread by factors of 2. All starts run as one vmapped solve.
+      distance fixed, `K` spread by factors of 2. All starts run in lockstep as one solve, and a
+      start that at its pace cannot end below a converged one within `max_steps` is stopped
+      (`race.py`); the reported start is never one of those.
     - `verbose`: `True` prints step, loss and the current lens of every start while solving; a
       callable is passed to the optimistix solver as its `verbose` (it receives `(name, value)`
       pairs, with `y` in the solver's coordinates); if it has a `stage(text)` method, that is

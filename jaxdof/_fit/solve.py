@@ -15,7 +15,7 @@ independent tiles of the photo agree on one lens beyond their noise (`adequacy.p
 in score form, each tile also allowed its own exposure); when they do not, the status is
 `inconsistent` and the covariance is inflated to the spread between the tiles.
 
-`fit_lens` runs two compiled stages per level, `fit_starts` (every start, vmapped, and the
+`fit_lens` runs two compiled stages per level, `fit_starts` (every start, raced, and the
 Jacobians at the best) and `finish` (statistics and the `FitResult`), through `run_stage`, which
 `record_stages` can time; settling a focus at infinity adds a `fit_starts` and a `restate`.
 """
@@ -31,7 +31,6 @@ from collections.abc import Callable, Iterator, Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import optimistix as optx
 from jaxtyping import Array, ArrayLike
 
@@ -43,6 +42,7 @@ from .layout import _W_MIN, _Spec, theta_floor
 from .linalg import thin_svd
 from .lm import LevenbergMarquardt
 from .prepare import _check_names, _prepare, check_differentiable, forward_model
+from .race import accepted_point, race, tie_margin
 from .residual import _Model
 from .result import RESULTS, FitResult
 from .strategies import border_mask, check_border, level_band
@@ -169,40 +169,34 @@ def _solve(model: _Model, solver, y0, args, max_steps: int):
     sol = optx.least_squares(
         model, solver, y0.astype(jnp.result_type(float)), args, max_steps=max_steps, throw=False
     )
-    y = sol.value.astype(y0.dtype)
+    return _outcome(
+        model, sol.value.astype(y0.dtype), sol.result, sol.stats["num_steps"], sol.state, args
+    )
+
+
+def _outcome(model: _Model, y, result, num_steps, state, args):
+    """A solve's solution `y`, its `jaxdof.RESULTS` status (from the optimistix `result`), steps,
+    residual and slot values, and its Jacobian where the solver's `state` keeps one at its last
+    accepted point, which is the returned solution (`race.accepted_point`): with the JVP rule of
+    `residual._residuals` that linearisation is the materialised Jacobian times a vector, so
+    reading it back as a matrix costs `P` small products instead of a render and `P` tangent
+    passes (a tenth to a third of a whole fit, depending on its number of steps). Other solvers:
+    None, and the caller evaluates it."""
     dtype = args[2].dtype  # the data's
-    kept = _solver_point(sol)
+    kept = accepted_point(state)
     if kept is None:
         residual, jac = model(y, args), None  # in the data's dtype again, since `y` is
     else:
         residual, jac = kept[0].astype(dtype), kept[1].astype(dtype)
-    ok = sol.result == optx.RESULTS.successful
-    maxed = sol.result == optx.RESULTS.nonlinear_max_steps_reached
+    ok = result == optx.RESULTS.successful
+    maxed = result == optx.RESULTS.nonlinear_max_steps_reached
     status = RESULTS.where(
         ok,
         RESULTS.successful,
         RESULTS.where(maxed, RESULTS.max_steps, RESULTS.solver_failed),
     )
     status = RESULTS.where(ok & ~jnp.all(jnp.isfinite(residual)), RESULTS.solver_failed, status)
-    return y, status, sol.stats["num_steps"], residual, model.theta(y, args[-1]), jac
-
-
-def _solver_point(sol):
-    """The residual and Jacobian at the solution, as the solver last evaluated them, or None.
-
-    The Gauss-Newton family (Levenberg-Marquardt, Dogleg, Gauss-Newton) keeps the residual and
-    the linearisation at its last accepted point, which is the returned solution; with the JVP
-    rule of `residual._residuals` that linearisation is the materialised Jacobian times a vector,
-    so reading it back as a matrix costs `P` small products instead of a render and `P` tangent
-    passes (a tenth to a third of a whole fit, depending on its number of steps). Other solvers:
-    None, and the caller evaluates both.
-    """
-    f_info = getattr(sol.state, "f_info", None)
-    residual = getattr(f_info, "residual", None)
-    op = getattr(f_info, "jac", None)
-    if not isinstance(op, lx.AbstractLinearOperator) or not isinstance(residual, jax.Array):
-        return None
-    return residual, op.as_matrix()
+    return y, status, num_steps, residual, model.theta(y, args[-1]), jac
 
 
 def _jacobians(model: _Model, y, args, jac=None):
@@ -233,8 +227,7 @@ def _pick_best(loss, converged, n, p: int, floor):
     solution decides the verdict (degenerate or not), and its status says it did not converge.
     """
     lowest = jnp.min(loss)
-    sigma2 = 2 * lowest / jnp.maximum(n - p, 1)
-    tie = loss <= lowest + 2.0 * sigma2 * p + floor
+    tie = loss <= lowest + tie_margin(lowest, n, p, floor)
     return jnp.lexsort((loss, (~(converged & tie)).astype(jnp.int32)))[0]
 
 
@@ -243,24 +236,35 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     """`fit_lens`'s solve at one pyramid level as one compiled call, shared by the free/shared
     sets with the same number of free parameters.
 
-    Solves from every start `y0s` `(S, P)` at once (vmapped), picks the best (`_pick_best`: a
-    converged start tied with the lowest loss, else the lowest loss), and evaluates the Jacobians
-    there. The free set is data (`args[-1]`, the layout), not part of the compiled code; `finish`
+    Solves from every start `y0s` `(S, P)` at once (`race.race`: in lockstep, a start that cannot
+    catch up with a converged one stopped; independent vmapped solves for a solver that keeps no
+    residual in its state), picks the best (`_pick_best`: a converged start tied with the lowest
+    loss, else the lowest loss), and evaluates the Jacobians there. The free set is data (`args[-1]`, the layout), not part of the compiled code; `finish`
     (small, compiled per free set) does the statistics. Returns the chosen `solution` (for
     `finish`) and `info`, the few arrays `fit_lens` reads in Python (`best`, per-start `loss`,
-    `converged`, `theta`, `ys`; `natural` at the best).
+    `converged`, `theta`, `ys`, `steps`, `stopped` by the race; `natural` at the best).
     """
-    ys, status, num_steps, residual, theta, jacs = eqx.filter_vmap(
-        _solve, in_axes=(None, None, 0, None, None)
-    )(model, solver, y0s, args, max_steps)
+    _, _, targets, sqrt_w, layout = args
+    eps = float(jnp.finfo(targets.dtype).eps)  # a Python float: no float32 x float64 mix
+    floor = 10 * eps * jnp.sum(jnp.square(targets * sqrt_w).astype(jnp.result_type(float)))
+    n = _n_residuals(targets, sqrt_w).astype(floor.dtype)
+    p = jnp.asarray(layout.live).shape[0]
+    y0s_wide = y0s.astype(jnp.result_type(float))  # as in `_solve`
+    raced = race(model, solver, y0s_wide, args, max_steps, (n, p, floor))
+    if raced is None:
+        stopped = jnp.zeros(y0s.shape[0], bool)
+        ys, status, num_steps, residual, theta, jacs = eqx.filter_vmap(
+            _solve, in_axes=(None, None, 0, None, None)
+        )(model, solver, y0s, args, max_steps)
+    else:
+        ys, result, steps, states, stopped = raced
+        ys, status, num_steps, residual, theta, jacs = eqx.filter_vmap(
+            lambda y, r, k, s: _outcome(model, y.astype(y0s.dtype), r, k, s, args)
+        )(ys, result, steps, states)
     loss = 0.5 * jnp.sum(jnp.square(residual.astype(jnp.result_type(float))), axis=-1)
     loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)
     converged = status == RESULTS.successful
-    _, _, targets, sqrt_w, layout = args
-    eps = float(jnp.finfo(targets.dtype).eps)  # a Python float: no float32 x float64 mix
-    floor = 10 * eps * jnp.sum(jnp.square(targets * sqrt_w).astype(loss.dtype))
-    n = _n_residuals(targets, sqrt_w).astype(loss.dtype)
-    best = _pick_best(loss, converged, n, jnp.asarray(layout.live).shape[0], floor)
+    best = _pick_best(loss, converged, n, p, floor)
     y = ys[best]
     jac, g = _jacobians(model, y, args, None if jacs is None else jacs[best])
     # A non-finite Jacobian at the solution makes its statistics meaningless: a failed solve.
@@ -274,6 +278,8 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
         theta=theta,
         natural=model.natural(y, layout),
         ys=ys,
+        steps=num_steps,
+        stopped=stopped,
     )
     return solution, info
 

@@ -1,0 +1,205 @@
+r"""`fit_lens`'s multi-start solve: every start in lockstep, and a start stopped once its pace
+shows it cannot catch up with one that has converged.
+
+**Why.** The starts of a fit are solved together (one vmapped solve; `solve.fit_starts`), so the
+solve lasts as long as its slowest start. A start that leaves its basin early can go on for the
+whole step budget while losing almost nothing: on the ray-traced `texture` scene (A = 0.1,
+d_f = 3 m) one of four starts overshot on its first step to f/8 times its start, where the circles
+are under a pixel, and crawled towards `d_f -> f`, `N -> 80` for all 100 steps, its loss falling
+0.1-0.3 % per step at 45 times the loss the other three had converged to by step 46. The fit
+reported the converged lens, after twice the steps.
+
+**The rule.** After each step, with `L*` the lowest loss among the starts that have converged, a
+start still running is stopped (its status: out of steps, not converged) when it has run at
+least `window` steps and
+
+$$L_s(t) - \frac{L_s(t - w) - L_s(t)}{w} \, (T - t) \; > \; L^* + \Delta,$$
+
+`L_s(t)` its loss at its last accepted point after step `t`, `w = window`, `T` the step budget,
+and `Delta` the margin within which `_pick_best` counts two losses as tied (`tie_margin`): at the
+pace of its last `w` steps it would end the budget above the converged start, so it can neither
+become the reported start nor tie with it (the near/far ambiguity test reads only converged
+starts). A start that stopped this way is never the reported one, since its loss is above `L*`.
+Losses decelerate under Levenberg-Marquardt, so the straight-line projection promises a start
+more than it will reach; the rule errs on the side of running. It can cut a start that stalls on
+a plateau and would then fall steeply; the studies of `fits/treatments.py` and
+`fits/raytraced_default.py` measure whether any reported lens changed.
+
+The driver is optimistix's iterative loop (`init`, then `step` and `terminate` until done, then
+`postprocess`) over all starts at once, vmapped per step, with the pace test between steps. It
+needs the residual at each start's accepted point, which the Gauss-Newton family
+(Levenberg-Marquardt, Dogleg, Gauss-Newton) keeps in its state; for other solvers `race` returns
+None and the caller solves the starts independently.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import optimistix as optx
+from jaxtyping import Array, Bool, Float
+
+
+# Steps over which a running start's pace is measured. Long enough to span a few rejected
+# Levenberg-Marquardt steps (which leave the loss unchanged), short against the budget.
+PACE_WINDOW = 10
+
+
+def tie_margin(lowest, n, p: int, floor):
+    """The loss above `lowest` within which another start ties with it: `2 sigma^2` per free
+    parameter, `sigma^2 = 2 lowest / (n - p)` estimated from the lowest loss (`n` residuals, `p`
+    parameters), plus `floor` for rounding. Shared by `solve._pick_best` and the race."""
+    sigma2 = 2 * lowest / jnp.maximum(n - p, 1)
+    return 2.0 * sigma2 * p + floor
+
+
+def cannot_catch_up(before, loss, steps_left, window: int, target):
+    """Whether a start whose loss went from `before` to `loss` over its last `window` steps ends
+    its `steps_left` steps above `target` at that pace (the straight line of the module
+    docstring)."""
+    pace = (before - loss) / window
+    return loss - pace * steps_left > target
+
+
+def _accepted_residual(state) -> Array | None:
+    """The residual at the last accepted point, where the solver's state keeps one (the
+    Gauss-Newton family's `f_info`), else None."""
+    f_info = getattr(state, "f_info", None)
+    residual = getattr(f_info, "residual", None)
+    return residual if isinstance(residual, jax.Array) else None
+
+
+def accepted_point(state) -> tuple[Array, Array] | None:
+    """The residual and the Jacobian (as a matrix) at the solver's last accepted point, or None
+    (`solve._outcome` reads the Jacobian there)."""
+    residual = _accepted_residual(state)
+    op = getattr(getattr(state, "f_info", None), "jac", None)
+    if residual is None or not isinstance(op, lx.AbstractLinearOperator):
+        return None
+    return residual, op.as_matrix()
+
+
+def _where(mask: Bool[Array, " S"], new, old):
+    """Per start: `new` where `mask`, else `old` (pytrees of arrays batched on axis 0)."""
+
+    def pick(a, b):
+        m = mask.reshape(mask.shape + (1,) * (a.ndim - 1))
+        return jnp.where(m, a, b)
+
+    return jax.tree_util.tree_map(pick, new, old)
+
+
+def race(
+    model: Callable[[Array, Any], Array],
+    solver: optx.AbstractLeastSquaresSolver,
+    y0s: Float[Array, "S P"],
+    args,
+    max_steps: int,
+    tie: tuple[Any, Any, Any],
+    window: int = PACE_WINDOW,
+):
+    """Solve from every start `y0s` in lockstep, stopping a start that cannot catch up (module
+    docstring). `model(y, args)` is the residual (`residual._Model`); `tie` is `(n, p, floor)`
+    of `tie_margin`.
+
+    Returns `(ys, result, num_steps, states, stopped)`: per start its solution, optimistix result,
+    steps taken, final solver state and whether the pace rule stopped it; None where the solver
+    keeps no residual in its state."""
+    if not isinstance(solver, optx.AbstractLeastSquaresSolver):
+        return None
+    fn = eqx.filter_closure_convert(lambda y, a: (model(y, a), None), y0s[0], args)
+    f_struct = jax.eval_shape(model, y0s[0], args)
+    options: dict = {}
+    tags: frozenset = frozenset()
+
+    def init(y):
+        return solver.init(fn, y, args, options, f_struct, None, tags)
+
+    def step(y, state):
+        y, state, _ = solver.step(fn, y, args, options, state, tags)
+        done, result = solver.terminate(fn, y, args, options, state, tags)
+        finite = jnp.all(jnp.isfinite(y))
+        return y, state, done, optx.RESULTS.where(finite, result, optx.RESULTS.nonfinite)
+
+    state0 = eqx.filter_vmap(init)(y0s)
+    if _accepted_residual(state0) is None:
+        return None
+    done0, result0 = eqx.filter_vmap(lambda y, s: solver.terminate(fn, y, args, options, s, tags))(
+        y0s, state0
+    )
+    dynamic0, static = eqx.partition(state0, eqx.is_array)
+    n_starts = y0s.shape[0]
+    n, p, floor = tie
+
+    def loss_of(state) -> Float[Array, " S"]:
+        r = _accepted_residual(state)
+        assert r is not None  # checked on the initial state; the state's type does not change
+        r = r.astype(jnp.result_type(float))
+        return 0.5 * jnp.sum(r * r, axis=-1)
+
+    def cond(carry):
+        _, _, _, running, _, _, _, t = carry
+        return jnp.any(running) & (t < max_steps)
+
+    def body(carry):
+        ys, dynamic, result, running, stopped, steps, history, t = carry
+        state = eqx.combine(dynamic, static)
+        new_y, new_state, done, new_result = eqx.filter_vmap(step)(ys, state)
+        new_dynamic, _ = eqx.partition(new_state, eqx.is_array)
+        ys = _where(running, new_y, ys)
+        dynamic = _where(running, new_dynamic, dynamic)
+        result = _where(running, new_result, result)
+        steps = steps + running.astype(steps.dtype)
+        t = t + 1
+        loss = loss_of(eqx.combine(dynamic, static))
+        ok = result == optx.RESULTS.successful
+        running = running & ~done & ok
+        converged = ~running & ~stopped & ok
+        best = jnp.min(jnp.where(converged, loss, jnp.inf))
+        # `history[t % w]` holds the loss after step `t - w` (step 0 is the dummy before the
+        # first evaluation, hence `t > w`).
+        slot = t % window
+        before = history[slot]
+        behind = cannot_catch_up(
+            before,
+            loss,
+            (max_steps - t).astype(loss.dtype),
+            window,
+            best + tie_margin(best, n, p, floor),
+        )
+        stop = running & (t > window) & jnp.isfinite(best) & behind
+        running = running & ~stop
+        stopped = stopped | stop
+        history = history.at[slot].set(loss)
+        return ys, dynamic, result, running, stopped, steps, history, t
+
+    dtype = jnp.result_type(float)
+    carry = (
+        y0s,
+        dynamic0,
+        result0,
+        ~done0 & (result0 == optx.RESULTS.successful),
+        jnp.zeros(n_starts, bool),
+        jnp.zeros(n_starts, jnp.int32),
+        jnp.full((window, n_starts), jnp.inf, dtype),
+        jnp.array(0, jnp.int32),
+    )
+    ys, dynamic, result, running, stopped, steps, _, _ = jax.lax.while_loop(cond, body, carry)
+    state = eqx.combine(dynamic, static)
+    # Out of budget: still running at the end, or stopped by the pace rule.
+    out_of_steps = (running | stopped) & (result == optx.RESULTS.successful)
+    result = eqx.filter_vmap(
+        lambda m, r: optx.RESULTS.where(m, optx.RESULTS.nonlinear_max_steps_reached, r)
+    )(out_of_steps, result)
+
+    def post(y, state, result):
+        y, _, _ = solver.postprocess(fn, y, None, args, options, state, tags, result)
+        return y
+
+    ys = eqx.filter_vmap(post)(ys, state, result)
+    return ys, result, steps, state, stopped
