@@ -76,6 +76,7 @@ def test_the_pace_rule_projects_a_straight_line_over_the_steps_left():
     assert bool(cannot_catch_up(12.0, 10.0, 40, 10, 1.0))
     assert not bool(cannot_catch_up(12.0, 10.0, 40, 10, 2.0 + 1e-9))
     assert bool(cannot_catch_up(10.0, 10.0, 1000, 10, 9.99))
+    assert bool(cannot_catch_up(9.0, 10.0, 40, 10, 9.99))
     # Before `window` steps of history the past loss is `inf`: never behind.
     assert not bool(cannot_catch_up(jnp.inf, 10.0, 40, 10, 1.0))
 

@@ -4,10 +4,10 @@ shows it cannot catch up with one that has converged.
 **Why.** The starts of a fit are solved together (one vmapped solve; `solve.fit_starts`), so the
 solve lasts as long as its slowest start. A start that leaves its basin early can go on for the
 whole step budget while losing almost nothing: on the ray-traced `texture` scene (A = 0.1,
-d_f = 3 m) one of four starts overshot on its first step to f/8 times its start, where the circles
-are under a pixel, and crawled towards `d_f -> f`, `N -> 80` for all 100 steps, its loss falling
-0.1-0.3 % per step at 45 times the loss the other three had converged to by step 46. The fit
-reported the converged lens, after twice the steps.
+d_f = 3 m) one of four starts overshot on its first step to 8.6 times its f-number, where the
+circles are under a pixel, and crawled towards `d_f -> f`, `N -> 83` for all 100 steps, its loss
+falling 0.1-0.3 % per step at 45 times the loss the other three had converged to by step 46. The
+fit reported the converged lens, after twice the steps.
 
 **The rule.** After each step, with `L*` the lowest loss among the starts that have converged, a
 start still running is stopped (its status: out of steps, not converged) when it has run at
@@ -22,8 +22,8 @@ become the reported start nor tie with it (the near/far ambiguity test reads onl
 starts). A start that stopped this way is never the reported one, since its loss is above `L*`.
 Losses decelerate under Levenberg-Marquardt, so the straight-line projection promises a start
 more than it will reach; the rule errs on the side of running. It can cut a start that stalls on
-a plateau and would then fall steeply; the studies of `fits/treatments.py` and
-`fits/raytraced_default.py` measure whether any reported lens changed.
+a plateau and would then fall steeply; `fits/raytraced_default.py` (48 ray-traced lenses) and
+`fits/recover.py` (noisy synthetic fits) measured no reported lens changed by it.
 
 The driver is optimistix's iterative loop (`init`, then `step` and `terminate` until done, then
 `postprocess`) over all starts at once, vmapped per step, with the pace test between steps. It

@@ -239,8 +239,9 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     Solves from every start `y0s` `(S, P)` at once (`race.race`: in lockstep, a start that cannot
     catch up with a converged one stopped; independent vmapped solves for a solver that keeps no
     residual in its state), picks the best (`_pick_best`: a converged start tied with the lowest
-    loss, else the lowest loss), and evaluates the Jacobians there. The free set is data (`args[-1]`, the layout), not part of the compiled code; `finish`
-    (small, compiled per free set) does the statistics. Returns the chosen `solution` (for
+    loss, else the lowest loss), and evaluates the Jacobians there. The free set is data
+    (`args[-1]`, the layout), not part of the compiled code; `finish` (small, compiled per free
+    set) does the statistics. Returns the chosen `solution` (for
     `finish`) and `info`, the few arrays `fit_lens` reads in Python (`best`, per-start `loss`,
     `converged`, `theta`, `ys`, `steps`, `stopped` by the race; `natural` at the best).
     """
