@@ -1,10 +1,12 @@
-"""The default solver's extra stopping rule (`jaxdof/_fit/lm.py`): Bates & Watts' relative
-offset, on a linear problem where it is exact."""
+"""The default solver's extra stopping rules (`jaxdof/_fit/lm.py`): Bates & Watts' relative
+offset, on a linear problem where it is exact, and the loss's rounding floor."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
-from jaxdof._fit.lm import relative_offset
+from jaxdof._fit.lm import LevenbergMarquardt, loss_rounding, relative_offset
 
 
 def test_relative_offset_is_the_gauss_newton_step_in_standard_errors():
@@ -28,3 +30,65 @@ def test_relative_offset_is_the_gauss_newton_step_in_standard_errors():
     r2 = jnp.concatenate([jnp.asarray(r), pad])
     j2 = jnp.concatenate([jnp.asarray(jac), jnp.zeros((50, p))])
     np.testing.assert_allclose(float(relative_offset(r2, j2, 1e-12)), got, rtol=1e-12)
+
+
+def _noisy_linear(rho: float):
+    """A linear least-squares problem with noise `sigma = 0.05` whose residuals also carry a
+    rounding-like error of size `rho`: deterministic in `y`, changing at every step, and invisible
+    to the Jacobian (as a float32 render's rounding is)."""
+    rng = np.random.default_rng(1)
+    n = 400
+    a = jnp.asarray(rng.standard_normal((n, 2)))
+    b = a @ jnp.array([0.3, -0.2]) + 0.05 * jnp.asarray(rng.standard_normal(n))
+
+    def fn(y, args):
+        smooth = a @ y - b
+        return smooth + jax.lax.stop_gradient(rho * jnp.sin(1e9 * smooth + 1.0))
+
+    y_ls = jnp.linalg.lstsq(a, b)[0]
+    se = 0.05 * jnp.sqrt(jnp.diag(jnp.linalg.inv(a.T @ a)))
+    return fn, y_ls, se, jnp.full((n,), rho)
+
+
+def _solve(fn, options):
+    solver = LevenbergMarquardt(rtol=1e-8, atol=1e-8, offset_tol=1e-3, rank_tol=1.5e-8)
+    y0 = jnp.array([3.0, 2.0])
+    return optx.least_squares(fn, solver, y0, None, options, max_steps=200, throw=False)
+
+
+def test_a_step_under_the_loss_rounding_stops_the_solve():
+    """With residuals rounded at `rho = 2e-4` (4e-3 of the noise, so the relative offset cannot
+    fall under 1e-3), optimistix's test stops only after a streak of noise-driven steps (42 here);
+    told the rounding, the solve stops at the first point whose next step's predicted decrease is
+    under twice the loss's rounding, which for a linear problem is the loss above the minimum, so
+    within `sqrt(2 * 2 nu) / sigma` standard errors of it."""
+    fn, y_ls, se, rho = _noisy_linear(2e-4)
+    told = _solve(fn, dict(rounding=rho))
+    blind = _solve(fn, None)
+    assert told.result == optx.RESULTS.successful
+    assert int(told.stats["num_steps"]) <= 5
+    assert int(blind.stats["num_steps"]) > 3 * int(told.stats["num_steps"])
+    nu = float(loss_rounding(fn(told.value, None), rho))
+    bound = np.sqrt(2 * 2 * nu) / 0.05
+    off = np.abs(np.asarray((told.value - y_ls) / se))
+    assert np.all(off <= bound)
+    assert np.all(off < 0.01)  # and in fact far inside it
+
+
+def test_exact_residuals_solve_to_the_minimum():
+    """Without rounding the rule never stops a solve early: told a rounding or not, the solve
+    reaches the least-squares solution to the step tolerance."""
+    fn, y_ls, se, rho = _noisy_linear(0.0)
+    for options in (None, dict(rounding=rho)):
+        sol = _solve(fn, options)
+        assert sol.result == optx.RESULTS.successful
+        np.testing.assert_array_less(np.abs(np.asarray((sol.value - y_ls) / se)), 1e-5)
+
+
+def test_loss_rounding():
+    """`eps L / 4` of the sum in the residual's dtype, plus `||r * rounding||`."""
+    r = jnp.array([3.0, -4.0], jnp.float32)
+    eps = float(np.finfo(np.float32).eps)
+    np.testing.assert_allclose(float(loss_rounding(r, None)), eps * 12.5 / 4, rtol=1e-6)
+    got = float(loss_rounding(r, jnp.array([1e-3, 2e-3])))
+    np.testing.assert_allclose(got, eps * 12.5 / 4 + np.hypot(3e-3, 8e-3), rtol=1e-6)

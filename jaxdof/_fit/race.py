@@ -101,11 +101,12 @@ def race(
     args,
     max_steps: int,
     tie: tuple[Any, Any, Any],
+    options: dict | None = None,
     window: int = PACE_WINDOW,
 ):
     """Solve from every start `y0s` in lockstep, stopping a start that cannot catch up (module
     docstring). `model(y, args)` is the residual (`residual._Model`); `tie` is `(n, p, floor)`
-    of `tie_margin`.
+    of `tie_margin`; `options` go to the solver (as `optimistix.least_squares`'s).
 
     Returns `(ys, result, num_steps, states, stopped)`: per start its solution, optimistix result,
     steps taken, final solver state and whether the pace rule stopped it; None where the solver
@@ -114,7 +115,7 @@ def race(
         return None
     fn = eqx.filter_closure_convert(lambda y, a: (model(y, a), None), y0s[0], args)
     f_struct = jax.eval_shape(model, y0s[0], args)
-    options: dict = {}
+    options = {} if options is None else options
     tags: frozenset = frozenset()
 
     def init(y):

@@ -73,6 +73,14 @@ class _Model(eqx.Module):
 
         return jax.vmap(one)(lenses, gain, offset)
 
+    def rounding(self, args) -> Array:
+        """Each residual's own rounding `(n,)`, `eps |sqrt(w) T|` in the data's precision: a render
+        rounds at about the size of the target it matches. The default solver stops where a step's
+        predicted decrease is under the rounding this puts on the loss (`lm.loss_rounding`)."""
+        _, _, targets, sqrt_w, _ = args
+        eps = float(jnp.finfo(targets.dtype).eps)  # a Python float: no float32 x float64 mix
+        return (eps * jnp.abs(jnp.broadcast_to(sqrt_w, targets.shape) * targets)).reshape(-1)
+
     def __call__(self, y, args) -> Array:
         """Weighted residuals, flattened: `sqrt(w) * (model - target)`.
 

@@ -166,8 +166,10 @@ def _solve(model: _Model, solver, y0, args, max_steps: int):
     # so float32 parameters under `jax_enable_x64` fail its structure check ("Vector and operator
     # structures do not match"). Carrying `y` in the default dtype and casting it to the data's
     # dtype inside the residual avoids that; the model itself runs in the data's precision.
+    y0_wide = y0.astype(jnp.result_type(float))
+    options = dict(rounding=model.rounding(args))  # read by `lm.LevenbergMarquardt`
     sol = optx.least_squares(
-        model, solver, y0.astype(jnp.result_type(float)), args, max_steps=max_steps, throw=False
+        model, solver, y0_wide, args, options, max_steps=max_steps, throw=False
     )
     return _outcome(
         model, sol.value.astype(y0.dtype), sol.result, sol.stats["num_steps"], sol.state, args
@@ -251,7 +253,8 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     n = _n_residuals(targets, sqrt_w).astype(floor.dtype)
     p = jnp.asarray(layout.live).shape[0]
     y0s_wide = y0s.astype(jnp.result_type(float))  # as in `_solve`
-    raced = race(model, solver, y0s_wide, args, max_steps, (n, p, floor))
+    options = dict(rounding=model.rounding(args))
+    raced = race(model, solver, y0s_wide, args, max_steps, (n, p, floor), options)
     if raced is None:
         stopped = jnp.zeros(y0s.shape[0], bool)
         ys, status, num_steps, residual, theta, jacs = eqx.filter_vmap(
