@@ -160,6 +160,12 @@ def _check_model(residual, jac, args, spec: _Spec, band: int) -> dict[str, Array
     )
 
 
+def _options(model: _Model, args) -> dict:
+    """The optimistix `options` of every solve: each residual's rounding, from which
+    `lm.LevenbergMarquardt` tells when a step can no longer be told from the loss's noise."""
+    return dict(rounding=model.rounding(args))
+
+
 def _solve(model: _Model, solver, y0, args, max_steps: int):
     """One least-squares solve from `y0`: solution, status, steps, residual and slot values. Pure."""
     # optimistix 0.1.0's Levenberg-Marquardt builds its damping term in JAX's default float dtype,
@@ -167,9 +173,8 @@ def _solve(model: _Model, solver, y0, args, max_steps: int):
     # structures do not match"). Carrying `y` in the default dtype and casting it to the data's
     # dtype inside the residual avoids that; the model itself runs in the data's precision.
     y0_wide = y0.astype(jnp.result_type(float))
-    options = dict(rounding=model.rounding(args))  # read by `lm.LevenbergMarquardt`
     sol = optx.least_squares(
-        model, solver, y0_wide, args, options, max_steps=max_steps, throw=False
+        model, solver, y0_wide, args, _options(model, args), max_steps=max_steps, throw=False
     )
     return _outcome(
         model, sol.value.astype(y0.dtype), sol.result, sol.stats["num_steps"], sol.state, args
@@ -253,8 +258,7 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     n = _n_residuals(targets, sqrt_w).astype(floor.dtype)
     p = jnp.asarray(layout.live).shape[0]
     y0s_wide = y0s.astype(jnp.result_type(float))  # as in `_solve`
-    options = dict(rounding=model.rounding(args))
-    raced = race(model, solver, y0s_wide, args, max_steps, (n, p, floor), options)
+    raced = race(model, solver, y0s_wide, args, max_steps, (n, p, floor), _options(model, args))
     if raced is None:
         stopped = jnp.zeros(y0s.shape[0], bool)
         ys, status, num_steps, residual, theta, jacs = eqx.filter_vmap(
