@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from jaxdof._fit.lm import LevenbergMarquardt, loss_rounding, relative_offset
+from jaxdof._fit.lm import _ROUNDING_MARGIN, LevenbergMarquardt, loss_rounding, relative_offset
 
 
 def test_relative_offset_is_the_gauss_newton_step_in_standard_errors():
@@ -60,8 +60,8 @@ def test_a_step_under_the_loss_rounding_stops_the_solve():
     """With residuals rounded at `rho = 2e-4` (4e-3 of the noise, so the relative offset cannot
     fall under 1e-3), optimistix's test stops only after a streak of noise-driven steps (42 here);
     told the rounding, the solve stops at the first point whose next step's predicted decrease is
-    under twice the loss's rounding, which for a linear problem is the loss above the minimum, so
-    within `sqrt(2 * 2 nu) / sigma` standard errors of it."""
+    under `_ROUNDING_MARGIN` times the loss's rounding, which for a linear problem is the loss
+    above the minimum, so within `sqrt(2 margin nu) / sigma` standard errors of it."""
     fn, y_ls, se, rho = _noisy_linear(2e-4)
     told = _solve(fn, dict(rounding=rho))
     blind = _solve(fn, None)
@@ -69,7 +69,7 @@ def test_a_step_under_the_loss_rounding_stops_the_solve():
     assert int(told.stats["num_steps"]) <= 5
     assert int(blind.stats["num_steps"]) > 3 * int(told.stats["num_steps"])
     nu = float(loss_rounding(fn(told.value, None), rho))
-    bound = np.sqrt(2 * 2 * nu) / 0.05
+    bound = np.sqrt(2 * _ROUNDING_MARGIN * nu) / 0.05
     off = np.abs(np.asarray((told.value - y_ls) / se))
     assert np.all(off <= bound)
     assert np.all(off < 0.01)  # and in fact far inside it

@@ -42,8 +42,16 @@ times the loss's rounding `nu = nu_r + eps L / 4` (`loss_rounding`; `m_i` from t
 step from there can be told from the noise. Measured at the solutions of the ray-traced tuning
 scenes (`planes`, `slant`, `occluders` at two lenses each, float64 and float32 sums, and
 `vignette`): the loss along lines through the solution scatters about its parabola by 0.46 to
-1.04 times `nu`. A linear model's predicted decrease is the loss above the minimum, so the
-solve stops within about `sqrt(2 margin nu) / sigma` standard errors of it.
+1.04 times `nu`. The trust region judges a step by a *difference* of two such losses, which
+scatters by up to twice that, ~2 `nu`; the margin is twice that again, 4: a step predicted to
+gain less is accepted or rejected by the rounding. (With a margin of 2, the same photo's raw
+init stopped at a point whose full step predicted 2.05 `nu`, and its trust region rejected that
+step 16 times, shrinking it until one was accepted by the rounding at step 39, while the other
+starts had stopped at steps 17 and 23: in lockstep, 16 more steps of all three.) A linear
+model's predicted decrease is the loss above the minimum, so the solve stops within about
+`sqrt(2 margin nu) / sigma` standard errors of it (0.04 on that photo); there, two starts that
+stopped by this rule with losses within 2 `nu` of each other lay 0.17 to 0.31 standard errors
+apart, so the float32 loss itself does not place the minimum closer than that.
 
 `y` and the residual are flat arrays (`residual._Model`'s); `J` is materialised (`P` columns).
 """
@@ -62,8 +70,9 @@ from .linalg import thin_svd
 
 # The loss's rounding, as a multiple of which a Gauss-Newton step's predicted decrease stops the
 # solve (module docstring): the loss scattered by 0.46-1.04 times `loss_rounding` about its
-# parabola at the tuning scenes' solutions, so 2 stops where a step is at most twice that noise.
-_ROUNDING_MARGIN = 2.0
+# parabola at the tuning scenes' solutions, a difference of two losses (what the trust region
+# tests) by up to about twice that, so 4 stops where a step is at most twice that noise.
+_ROUNDING_MARGIN = 4.0
 
 
 def _projection(residual: Array, jac: Array, rank_tol: float) -> tuple[Array, Array]:
