@@ -28,13 +28,29 @@ from . import _footprint_table
 from ._custom_types import Image, ImageLike, RadiusLike
 
 
-def depth_edges(depth: ArrayLike, *, jump: float = 0.03) -> np.ndarray:
+#: `depth_edges`: a step is a jump when it exceeds this many times the surfaces' own steps
+#: beside it (a plane's steps are all equal, a crease's at most the steeper surface's).
+EDGE_SLOPE = 2.0
+
+
+def depth_edges(depth: ArrayLike, *, jump: float = 0.03, slope: float = EDGE_SLOPE) -> np.ndarray:
     """Boolean `(H, W)` mask of the pixels on either side of a depth discontinuity.
 
-    A pair of 4-neighbours is an edge when their z-depths differ by more than `jump` relative to
-    the nearer one (`|d_p - d_q| / min(d_p, d_q) > jump`). A smooth surface, even a steeply slanted
-    one, changes depth by well under 3% per pixel at any ordinary resolution, so the default marks
-    occlusion boundaries only. Infinite depths (sky) count as far.
+    A pair of 4-neighbours `(p, q)` along a row or a column is an edge when its step is both
+
+    - large: `|d_p - d_q| > jump min(d_p, d_q)` (3 % by default), and
+    - a jump, not the surface's own slope, in depth and in inverse depth alike: for `v = d` and
+      for `v = 1/d`, `|v_p - v_q| > slope g` with `g` the larger of the steps one pixel further
+      out on either side, `|v_{p-1} - v_{p-2}|` and `|v_{q+2} - v_{q+1}|` (`slope` 2 by default;
+      a step beyond the frame counts as 0).
+
+    Inverse depth is affine in the pixel coordinates on any plane, so a plane, however steep (a
+    floor at a grazing angle), steps by the same amount in `1/d` at every pixel; a synthetic ramp
+    linear in `d` does so in `d`; where two surfaces meet (a floor and a wall) the step at the
+    crease is one of theirs: none of them is an edge. An occlusion boundary steps by far more than
+    the surfaces on either side, also when the depth map spreads it over two pixels (an
+    antialiased or upsampled map: the steps one further out are the surfaces'). Infinite depths
+    (sky) count as far.
     """
     d = np.asarray(depth)
     # float32 stays float32 (a 3 % test needs no more; a 24 MP map in float64 would make ~1 GB
@@ -44,18 +60,28 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03) -> np.ndarray:
         raise ValueError(f"depth must be an (H, W) map, got shape {d.shape}")
     if not (jump > 0):
         raise ValueError(f"jump must be a positive relative depth difference, got {jump}")
+    if not (slope >= 1):
+        raise ValueError(f"slope must be a ratio of steps >= 1, got {slope}")
     edges = np.zeros(d.shape, bool)
-    # |d_p - d_q| > jump min(d_p, d_q): the relative test without a division (depths are > 0);
-    # inf - inf (both sky) is NaN, which compares False: no edge. One pair of slices per axis.
-    with np.errstate(invalid="ignore"):
-        for lo, hi, e_lo, e_hi in (
-            (d[:-1], d[1:], edges[:-1], edges[1:]),
-            (d[:, :-1], d[:, 1:], edges[:, :-1], edges[:, 1:]),
-        ):
-            step = np.abs(lo - hi) > jump * np.minimum(lo, hi)
-            e_lo |= step
-            e_hi |= step
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for x, e in ((d, edges), (d.T, edges.T)):
+            # |d_p - d_q| > jump min(d_p, d_q) without a division; inf - inf (both sky) is NaN,
+            # which compares False: no edge.
+            jumps = np.abs(np.diff(x, axis=0)) > jump * np.minimum(x[:-1], x[1:])
+            for v in (x, 1 / x):
+                jumps &= _outstrips(np.nan_to_num(np.abs(np.diff(v, axis=0)), posinf=np.inf), slope)
+            e[:-1] |= jumps
+            e[1:] |= jumps
     return edges
+
+
+def _outstrips(step: np.ndarray, slope: float) -> np.ndarray:
+    """Whether each step `(n - 1, ...)` (pair `(i, i + 1)`) exceeds `slope` times the larger of the
+    steps one pixel further out, `step[i - 2]` and `step[i + 2]` (0 beyond the frame)."""
+    out = np.zeros_like(step)
+    out[2:] = step[:-2]
+    out[:-2] = np.maximum(out[:-2], step[2:])
+    return step > slope * out
 
 
 def edge_distance(depth: ArrayLike, *, jump: float = 0.03, limit: float = 64.0) -> np.ndarray:

@@ -64,6 +64,8 @@ class Treatment:
     - `border`: the band along the frame's edges left out (photo px; set after the fit).
     - `forced`: the choices the caller made (`"occlusion"`, `"footprint"`, `"edge_weight"`);
       the rest were chosen by the rules above.
+    - `selected`: what the photo said of the scene's choices (a fit's only; `jaxdof/_fit/select.py`):
+      e.g. `"footprint off (chi2 812)"` where the fit without it explains the photo better.
     """
 
     method: str = "soft"
@@ -75,6 +77,7 @@ class Treatment:
     median_circle: float = 0.0
     border: int = 0
     forced: tuple[str, ...] = ()
+    selected: tuple[str, ...] = ()
 
     def __str__(self) -> str:
         parts = []
@@ -86,10 +89,12 @@ class Treatment:
             parts.append("footprint")
         parts.append(f"border {self.border} px")
         text = ", ".join(parts)
-        return f"{text} (forced: {', '.join(self.forced)})" if self.forced else text
+        text = f"{text} (forced: {', '.join(self.forced)})" if self.forced else text
+        return f"{text}; photo: {', '.join(self.selected)}" if self.selected else text
 
     def to_dict(self) -> dict:
-        return {**dataclasses.asdict(self), "forced": list(self.forced), "text": str(self)}
+        d = dataclasses.asdict(self)
+        return {**d, "forced": list(self.forced), "selected": list(self.selected), "text": str(self)}
 
 
 def start_circles(lens_rows: np.ndarray, depth: np.ndarray) -> np.ndarray:

@@ -364,6 +364,13 @@ TREATMENT_EDGE_MIN_SHARE = 0.005
 #: d_f = 1.8 m). Not tuned further.
 TREATMENT_EDGE_KEEP_MIN = 0.3
 
+#: The photo's say (`jaxdof/_fit/select.py`): a treatment the scene chose is dropped when the fit
+#: without it lowers the chi-square (the sum of squares over the noise variance, same pixels, same
+#: number of parameters) by more than this. 10 is a p-value of 0.0016 for one degree of freedom,
+#: so noise alone rarely switches a model the photo cannot tell from the other; a photo the other
+#: model made lowers it by orders of magnitude more (the README's example: about 1e9 in float32).
+SELECT_CHI2 = 10.0
+
 _NAMES = (
     "SPANS_MIN_RADIUS",
     "JITTER_SPANS_MIN_RADIUS",

@@ -6,7 +6,13 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from jaxdof._fit.lm import _ROUNDING_MARGIN, LevenbergMarquardt, loss_rounding, relative_offset
+from jaxdof._fit.lm import (
+    _ROUNDING_MARGIN,
+    MAX_STEP,
+    LevenbergMarquardt,
+    loss_rounding,
+    relative_offset,
+)
 
 
 def test_relative_offset_is_the_gauss_newton_step_in_standard_errors():
@@ -50,8 +56,11 @@ def _noisy_linear(rho: float):
     return fn, y_ls, se, jnp.full((n,), rho)
 
 
-def _solve(fn, options):
-    solver = LevenbergMarquardt(rtol=1e-8, atol=1e-8, offset_tol=1e-3, rank_tol=1.5e-8)
+def _solve(fn, options, max_step=np.inf):
+    # Unbounded steps by default: the stopping rules alone (y0 is 2.7 from the solution)
+    solver = LevenbergMarquardt(
+        rtol=1e-8, atol=1e-8, offset_tol=1e-3, rank_tol=1.5e-8, max_step=max_step
+    )
     y0 = jnp.array([3.0, 2.0])
     return optx.least_squares(fn, solver, y0, None, options, max_steps=200, throw=False)
 
@@ -92,3 +101,20 @@ def test_loss_rounding():
     np.testing.assert_allclose(float(loss_rounding(r, None)), eps * 12.5 / 4, rtol=1e-6)
     got = float(loss_rounding(r, jnp.array([1e-3, 2e-3])))
     np.testing.assert_allclose(got, eps * 12.5 / 4 + np.hypot(3e-3, 8e-3), rtol=1e-6)
+
+
+def test_the_step_bound_keeps_every_step_within_it_and_reaches_the_same_solution():
+    """`MAX_STEP`: the damped Newton step is scaled along its direction to at most `MAX_STEP` in
+    every coordinate; from 2.7 away the solve takes more steps and ends at the same solution."""
+    fn, y_ls, se, _ = _noisy_linear(0.0)
+    solver = LevenbergMarquardt(rtol=1e-8, atol=1e-8, offset_tol=1e-3, rank_tol=1.5e-8)
+    y0 = jnp.array([3.0, 2.0])
+    path = [
+        np.asarray(optx.least_squares(fn, solver, y0, None, {}, max_steps=k, throw=False).value)
+        for k in range(1, 9)
+    ]
+    moves = np.abs(np.diff(np.asarray([[3.0, 2.0], *path]), axis=0))
+    assert np.all(moves <= MAX_STEP * (1 + 1e-12))
+    assert np.max(moves) > 0.5 * MAX_STEP  # the bound was active
+    bounded = _solve(fn, None, max_step=MAX_STEP)
+    np.testing.assert_allclose(np.asarray(bounded.value), np.asarray(y_ls), atol=1e-3 * float(se.min()))

@@ -24,6 +24,7 @@ from .._filters.common import is_concrete
 from .._lens import ThinLens
 from .forward import AbstractForwardModel
 from .layout import LENS_FIELDS, pack, theta_floor
+from .lm import bounded
 from .prepare import (
     Problem,
     _check_names,
@@ -33,6 +34,7 @@ from .prepare import (
     prepare_problem,
 )
 from .residual import _Model
+from .select import alternatives, kept, prefers, refit_call, selected
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
 from .solve import default_solver, degenerate_at, finish, fit_starts, restate, run_stage
 from .strategies import (
@@ -140,7 +142,7 @@ def _solvers(solver, dtype, verbose):
         solver = default_solver(dtype)
         # A coarse level's minimum differs from the full-resolution one by the downsampling's
         # model error, so it is solved only to `_COARSE_TOL` (see `strategies.py`).
-        coarse_solver = optx.LevenbergMarquardt(rtol=_COARSE_TOL, atol=_COARSE_TOL)
+        coarse_solver = bounded(optx.LevenbergMarquardt(rtol=_COARSE_TOL, atol=_COARSE_TOL))
     else:
         coarse_solver = solver
     if verbose is not False and not hasattr(solver, "verbose"):
@@ -875,6 +877,47 @@ def fit_lens(
     show in such a test; `fits/results/adequacy.md` measures both.
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
+    call = dict(locals())
+    result = _fit_treated(**call)
+    # The photo's say in what the scene chose (`select.py`): each choice dropped in turn, kept
+    # only where the photo prefers it.
+    for name, changes in alternatives(result, call):
+        try:
+            alt = _fit_treated(**refit_call(result, call, changes))
+        except ValueError:  # e.g. the simpler model leaves the free set undetermined
+            result = kept(result, name, -np.inf)
+            continue
+        better, chi2 = prefers(alt, result, np.asarray(result.loss).dtype)
+        result = selected(alt, result, name, chi2) if better else kept(result, name, chi2)
+    return result
+
+
+def _fit_treated(
+    image: ArrayLike,
+    depth: ArrayLike,
+    targets: ArrayLike | Sequence[ArrayLike],
+    init: ThinLens | Sequence[ThinLens],
+    *,
+    free: Sequence[str] = ("focus_distance", "f_number"),
+    shared: Sequence[str] = (),
+    solver: optx.AbstractLeastSquaresSolver | None = None,
+    max_steps: int = 100,
+    weight: ArrayLike | None = None,
+    max_radius: float | None = None,
+    allow_degenerate: bool = False,
+    exposure: bool = False,
+    starts: int | None = None,
+    verbose: bool | Callable[..., None] = False,
+    model: AbstractForwardModel | None = None,
+    method: str | AbstractMethod | None = None,
+    footprint: bool | None = None,
+    pyramid: int | None = None,
+    downsample: int | None = None,
+    border: bool | str | int = "auto",
+    tiles: str | int | bool | None = "auto",
+    edge_weight: bool | float | None = None,
+) -> FitResult:
+    """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection."""
     given = dict(locals())  # the call, to refit on tiles chosen for a larger window
     forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)
     free, shared = _check_names(free, shared)
@@ -944,7 +987,7 @@ def fit_lens(
     )
     if chosen is not None:
         if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
-            return fit_lens(**{**given, "max_radius": window, "tiles": budget})
+            return _fit_treated(**{**given, "max_radius": window, "tiles": budget})
         notes.append(_tiles_note(chosen, p_full_pixels))
         result = dataclasses.replace(result, tiles=chosen.boxes)
     # A rank-deficient solution that the photos contradict (the adequacy test fails there) while

@@ -1,0 +1,145 @@
+r"""The photo's say in the treatment: `fit_lens` keeps a treatment the scene chose only where the
+photo prefers it.
+
+The scene's rules (`jaxdof/_scene.py`) choose, from the depth map and the starting lens, the
+footprint correction where circles are small and the occlusion render where depth edges matter.
+Those rules know what a camera records; they cannot know what made *this* photo. A photo made by
+`jaxdof.render` with its default options (the plain `soft` scatter), by another simulator, or by
+a camera whose all-in-focus image was itself prefiltered, may be explained better without them,
+and fitting it with them biases the lens (the README's example: 3.6 % in `K`).
+
+**The rule.** After the fit with the scene's treatment `T0`, each choice the scene made (and the
+caller did not force) is dropped in turn, as a likelihood comparison between two models with the
+same free parameters: the fit without it `T1` is solved from `T0`'s lens (one start, the same edge
+weight and border band, so the same pixels), and replaces `T0` when
+
+$$\Delta\chi^2 = \frac{n\,(m_0 - m_1)}{\sigma^2} > \texttt{SELECT\_CHI2}
+  \quad\text{and}\quad m_0 - m_1 > \text{the losses' rounding},$$
+
+with `m = 2 L / n` the mean squared weighted residual over the `n` residuals fitted and
+`sigma^2` the smaller of the two fits' residual variances (the noise, as nearly as either model
+sees it). With equal numbers of parameters the information criteria (AIC, BIC) all reduce to
+comparing the losses; the margin keeps the scene's choice where the photo cannot tell the two
+apart (then their lenses agree to within their errors anyway), so a wrong switch needs the noise
+to favour the wrong model by `sqrt(SELECT_CHI2)` standard deviations of the difference.
+The footprint is tried first, then the occlusion render; the result says what was tried and
+what the photo chose (`Treatment.selected`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from .. import _tuning
+from .._scene import OCCLUSION_METHOD
+from .result import RESULTS, FitResult, code_of
+
+
+#: The chi-square margin by which the photo must prefer a simpler treatment (module docstring).
+SELECT_CHI2 = _tuning.SELECT_CHI2
+
+# Statuses whose lens is worth comparing: a converged fit, whatever its verdict.
+_COMPARABLE = ("successful", "inconsistent", "ambiguous", "window")
+
+
+def alternatives(result: FitResult, call: dict) -> list[tuple[str, dict]]:
+    """The simpler treatments to try after `result` (the scene's), as `(name, changes to the
+    call)`: the footprint correction off, then the occlusion render off, each only where the scene
+    chose it and the caller did not force it, and only for the default forward model."""
+    t = result.treatment
+    if t is None or call.get("model") is not None or _status(result) not in _COMPARABLE:
+        return []
+    out = []
+    if t.footprint and call.get("footprint") is None:
+        out.append(("footprint", {"footprint": False}))
+    if t.occlusion and call.get("method") is None:
+        out.append(("occlusion", {"method": "soft"}))
+    return out
+
+
+def refit_call(result: FitResult, call: dict, changes: dict) -> dict:
+    """The call of an alternative fit: the same edge weight and border band (so the same pixels),
+    the treatment's other choices as `result` made them; from `result`'s lens with one start
+    where `result` succeeded, else from the caller's starts (a model that does not explain the
+    photo may have led its fit astray: a soft render of circles under a pixel fitted with the
+    footprint correction ended at 4.5 times the f-number, where the soft render is in its
+    dead zone)."""
+    t = result.treatment
+    assert t is not None
+    keep = {
+        "footprint": t.footprint,
+        "method": t.method if t.occlusion else "soft",
+        "edge_weight": t.edge_weight if t.edge_weight > 0 else False,
+        "border": int(result.border) if call.get("border") is not False else False,
+    }
+    if call.get("method") is not None:
+        keep["method"] = call["method"]
+    if _status(result) != "successful":
+        return {**call, **keep, **changes}
+    return {**call, **keep, **changes, "init": result.lenses, "starts": 1, "pyramid": None}
+
+
+def prefers(alt: FitResult, incumbent: FitResult, dtype) -> tuple[bool, float]:
+    """Whether the photo prefers `alt` to `incumbent` (module docstring), and the chi-square
+    difference `Delta chi^2` (positive: `alt` fits better)."""
+    if _status(alt) not in _COMPARABLE:
+        return False, -math.inf
+    n0, n1 = _residuals(incumbent), _residuals(alt)
+    l0, l1 = float(np.asarray(incumbent.loss)), float(np.asarray(alt.loss))
+    if not (np.isfinite(l0) and np.isfinite(l1)) or min(n0, n1) <= 0:
+        return False, -math.inf
+    m0, m1 = 2 * l0 / n0, 2 * l1 / n1
+    s0, s1 = (float(np.asarray(r.sigma)) ** 2 for r in (incumbent, alt))
+    eps = float(np.finfo(dtype).eps)
+    # Each mean square carries its sum's rounding (`lm.loss_rounding`'s share of the sum).
+    rounding = eps * max(m0, m1)
+    sigma2 = max(min(s0, s1), rounding, np.finfo(dtype).tiny)
+    chi2 = min(n0, n1) * (m0 - m1) / sigma2
+    return bool(chi2 > SELECT_CHI2 and m0 - m1 > 4 * rounding), chi2
+
+
+def selected(alt: FitResult, incumbent: FitResult, name: str, chi2: float) -> FitResult:
+    """`alt`, with its treatment saying that the photo chose it over `incumbent`'s, and the
+    incumbent's near/far ambiguity (a property of the data, which the one-start refit cannot see)
+    carried over."""
+    t_alt, t0 = alt.treatment, incumbent.treatment
+    assert t_alt is not None and t0 is not None
+    forced = tuple(f for f in t0.forced)
+    treatment = dataclasses.replace(
+        t_alt,
+        edge_pixels=t0.edge_pixels,
+        edge_share=t0.edge_share,
+        median_circle=t0.median_circle,
+        forced=forced,
+        selected=(*t0.selected, f"{name} off (chi2 {chi2:.3g})"),
+    )
+    out = dataclasses.replace(alt, treatment=treatment, levels=incumbent.levels)
+    if _status(incumbent) == "ambiguous" and _status(alt) == "successful":
+        out = dataclasses.replace(
+            out, status=RESULTS.ambiguous, success=np.asarray(False), notes=incumbent.notes
+        )
+    return out
+
+
+def kept(incumbent: FitResult, name: str, chi2: float) -> FitResult:
+    """`incumbent`, its treatment saying that the photo kept `name` (`chi2`: the simpler fit's
+    chi-square difference, negative where it fits worse)."""
+    t0 = incumbent.treatment
+    assert t0 is not None
+    text = f"{name} kept (chi2 {chi2:.3g})" if math.isfinite(chi2) else f"{name} kept"
+    treatment = dataclasses.replace(t0, selected=(*t0.selected, text))
+    return dataclasses.replace(incumbent, treatment=treatment)
+
+
+def _status(result: FitResult) -> str:
+    code = code_of(result.status)
+    return next((n for n in _COMPARABLE if code == code_of(getattr(RESULTS, n))), "other")
+
+
+def _residuals(result: FitResult) -> int:
+    """The photo pixels fitted: with the mean square per pixel, `n (m0 - m1)` is the difference
+    of the sums of squares on the same pixels, whatever the channels."""
+    return int(np.asarray(result.pixels_used))
