@@ -94,7 +94,12 @@ class Treatment:
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
-        return {**d, "forced": list(self.forced), "selected": list(self.selected), "text": str(self)}
+        return {
+            **d,
+            "forced": list(self.forced),
+            "selected": list(self.selected),
+            "text": str(self),
+        }
 
 
 def start_circles(lens_rows: np.ndarray, depth: np.ndarray) -> np.ndarray:

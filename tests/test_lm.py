@@ -117,4 +117,6 @@ def test_the_step_bound_keeps_every_step_within_it_and_reaches_the_same_solution
     assert np.all(moves <= MAX_STEP * (1 + 1e-12))
     assert np.max(moves) > 0.5 * MAX_STEP  # the bound was active
     bounded = _solve(fn, None, max_step=MAX_STEP)
-    np.testing.assert_allclose(np.asarray(bounded.value), np.asarray(y_ls), atol=1e-3 * float(se.min()))
+    np.testing.assert_allclose(
+        np.asarray(bounded.value), np.asarray(y_ls), atol=1e-3 * float(se.min())
+    )

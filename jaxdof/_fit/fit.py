@@ -34,8 +34,8 @@ from .prepare import (
     prepare_problem,
 )
 from .residual import _Model
-from .select import alternatives, kept, prefers, refit_call, selected
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
+from .select import alternatives, kept, prefers, refit_call, selected
 from .solve import default_solver, degenerate_at, finish, fit_starts, restate, run_stage
 from .strategies import (
     _COARSE_TOL,

@@ -34,7 +34,6 @@ import math
 import numpy as np
 
 from .. import _tuning
-from .._scene import OCCLUSION_METHOD
 from .result import RESULTS, FitResult, code_of
 
 
