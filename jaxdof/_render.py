@@ -67,7 +67,9 @@ def render(
       `footprint` is given), and otherwise the fastest filter with `soft`'s numbers. It needs a
       concrete depth map and lens: under `jit`/`vmap`/`grad` it renders `soft` (no footprint
       correction unless asked), and with `band_rows` it cannot render occlusion (logged as a
-      warning). The default `"soft"` renders exactly what it is asked.
+      warning). The default `"soft"` renders exactly what it is asked, the same under `jit` as
+      outside it; `jaxdof.fit_lens`'s default call recovers the lens of its photos (the photo
+      decides whether the scene's footprint correction and occlusion render stay in the fit).
     - `normalize`: as in `coc_filter`: divide by the same render of an image of ones, so that the
       pixels within a circle of the frame's edge, whose light partly leaves the frame, keep
       their brightness. Which border treatment when: `normalize=True` for a picture whose

@@ -815,18 +815,21 @@ def fit_lens(
       on with the automatic width, a number: on with that width (photo pixels).
 
     **Treatment.** By default the fit inspects the depth map and the `init` lens and turns on
-    only what the scene needs (`jaxdof/_scene.py` has the rules and their figures;
-    `jaxdof.scene_treatment` says what they choose for a depth map and lens): where
-    depth edges with circles over half a pixel touch more than 0.5 % of the fitted pixels, the
-    occlusion-aware render (`jaxdof.LocalOcclusion()`: occlusion decided per pair of
-    pixels against the receiver's own surface, so a floor is no edge, the hidden surfaces filled)
-    and the edge weight (width: the largest starting
-    circle on those edges plus a pixel; dropped where it would leave under 30 % of the weight);
-    where the starting lens's median circle is under 40 px, the footprint correction (else `K`
-    comes out short by about `1 / (6 r^2)`); and always the border. `method`, `footprint` and
-    `edge_weight` force a choice; `FitResult.treatment` reports every choice and which were
-    forced. A `model` of your own is fitted as it is (no edge weight unless `edge_weight` asks;
-    `model=jaxdof.DefocusModel()` fits exactly `jaxdof.render`'s default).
+    what a camera's photo of that scene needs (`jaxdof/_scene.py` has the rules;
+    `jaxdof.scene_treatment` says what they choose): where depth edges (jumps in depth, not
+    slopes: `jaxdof.depth_edges`) with circles over half a pixel touch more than 0.5 % of the
+    fitted pixels, the occlusion-aware render (`jaxdof.LocalOcclusion()`) and an edge weight
+    (width: the largest starting circle on those edges plus a pixel; dropped where it would leave
+    under 30 % of the weight); where the starting lens's median circle is under 40 px, the
+    footprint correction; and always the border. Then the photo has its say
+    (`jaxdof/_fit/select.py`): each of those choices is dropped in turn, the fit without it
+    solved from the lens found, and kept only unless the simpler model lowers the chi-square by
+    more than 10 on the same pixels. So a photo made by `jaxdof.render` with any of its models
+    (its default, the plain `soft` scatter, included) comes back as its lens, and a camera's
+    photo keeps what it needs. `method`, `footprint` and `edge_weight` force a choice (no
+    selection on it); `FitResult.treatment` reports every choice, which were forced and what the
+    photo said (`selected`). A `model` of your own is fitted as it is (no edge weight unless
+    `edge_weight` asks; `model=jaxdof.DefocusModel()` fits exactly `jaxdof.render`'s default).
 
     **Returns:** a `FitResult`. `success` is `False`, with the reason in `status` (a
     `jaxdof.RESULTS` member) and `message`, when the best start did not converge, when distinct

@@ -22,8 +22,9 @@ sees it). With equal numbers of parameters the information criteria (AIC, BIC) a
 comparing the losses; the margin keeps the scene's choice where the photo cannot tell the two
 apart (then their lenses agree to within their errors anyway), so a wrong switch needs the noise
 to favour the wrong model by `sqrt(SELECT_CHI2)` standard deviations of the difference.
-The footprint is tried first, then the occlusion render; the result says what was tried and
-what the photo chose (`Treatment.selected`).
+The footprint is tried first, then the occlusion render (off where the scene chose it, on where
+the depth map has edges that the starting lens's circles did not make matter); the result says
+what was tried and what the photo chose (`Treatment.selected`).
 """
 
 from __future__ import annotations
@@ -34,6 +35,8 @@ import math
 import numpy as np
 
 from .. import _tuning
+from .._corrections import depth_edges
+from .._scene import OCCLUSION_METHOD
 from .result import RESULTS, FitResult, code_of
 
 
@@ -45,17 +48,23 @@ _COMPARABLE = ("successful", "inconsistent", "ambiguous", "window")
 
 
 def alternatives(result: FitResult, call: dict) -> list[tuple[str, dict]]:
-    """The simpler treatments to try after `result` (the scene's), as `(name, changes to the
-    call)`: the footprint correction off, then the occlusion render off, each only where the scene
-    chose it and the caller did not force it, and only for the default forward model."""
+    """The other treatments to try after `result` (the scene's), as `(label, changes to the
+    call)`, each only where the caller did not force that choice, and only for the default
+    forward model: the footprint correction off where the scene chose it; the occlusion render
+    off where the scene chose it, or on where the depth map has edges the starting lens did not
+    make matter (the photo's lens may: the scene's rule at the start is not its rule at the
+    truth)."""
     t = result.treatment
     if t is None or call.get("model") is not None or _status(result) not in _COMPARABLE:
         return []
     out = []
     if t.footprint and call.get("footprint") is None:
-        out.append(("footprint", {"footprint": False}))
-    if t.occlusion and call.get("method") is None:
-        out.append(("occlusion", {"method": "soft"}))
+        out.append(("footprint off", {"footprint": False}))
+    if call.get("method") is None:
+        if t.occlusion:
+            out.append(("occlusion off", {"method": "soft"}))
+        elif depth_edges(np.asarray(call["depth"])).any():
+            out.append(("occlusion on", {"method": OCCLUSION_METHOD}))
     return out
 
 
@@ -100,7 +109,7 @@ def prefers(alt: FitResult, incumbent: FitResult, dtype) -> tuple[bool, float]:
     return bool(chi2 > SELECT_CHI2 and m0 - m1 > 4 * rounding), chi2
 
 
-def selected(alt: FitResult, incumbent: FitResult, name: str, chi2: float) -> FitResult:
+def selected(alt: FitResult, incumbent: FitResult, label: str, chi2: float) -> FitResult:
     """`alt`, with its treatment saying that the photo chose it over `incumbent`'s, and the
     incumbent's near/far ambiguity (a property of the data, which the one-start refit cannot see)
     carried over."""
@@ -113,7 +122,7 @@ def selected(alt: FitResult, incumbent: FitResult, name: str, chi2: float) -> Fi
         edge_share=t0.edge_share,
         median_circle=t0.median_circle,
         forced=forced,
-        selected=(*t0.selected, f"{name} off (chi2 {chi2:.3g})"),
+        selected=(*t0.selected, f"{label}: better by chi2 {chi2:.3g}"),
     )
     out = dataclasses.replace(alt, treatment=treatment, levels=incumbent.levels)
     if _status(incumbent) == "ambiguous" and _status(alt) == "successful":
@@ -123,13 +132,13 @@ def selected(alt: FitResult, incumbent: FitResult, name: str, chi2: float) -> Fi
     return out
 
 
-def kept(incumbent: FitResult, name: str, chi2: float) -> FitResult:
-    """`incumbent`, its treatment saying that the photo kept `name` (`chi2`: the simpler fit's
-    chi-square difference, negative where it fits worse)."""
+def kept(incumbent: FitResult, label: str, chi2: float) -> FitResult:
+    """`incumbent`, its treatment saying that the photo did not prefer `label` (`chi2`: how much
+    better that fit was, negative where it was worse; `-inf` where it could not be fitted)."""
     t0 = incumbent.treatment
     assert t0 is not None
-    text = f"{name} kept (chi2 {chi2:.3g})" if math.isfinite(chi2) else f"{name} kept"
-    treatment = dataclasses.replace(t0, selected=(*t0.selected, text))
+    how = f"chi2 {chi2:+.3g}" if math.isfinite(chi2) else "no fit"
+    treatment = dataclasses.replace(t0, selected=(*t0.selected, f"{label}: not better ({how})"))
     return dataclasses.replace(incumbent, treatment=treatment)
 
 

@@ -1,0 +1,212 @@
+"""A photo made by jaxdof's own forward models comes back as its lens with the default `fit_lens`
+call (`jaxdof/_fit/select.py`: the photo has a say in the scene's treatment), and the README's
+quick example does what it says.
+
+The property tests draw the lens (f-number, focus distance, which fixes the circles) and the
+scene (a ramp, or a step between two slanted planes) for each forward model `render` offers; shapes are
+fixed so that the examples share compiled programs. The default run covers circles of 0.3 to
+about 5 px in float32 and float64; the slow run adds circles up to 30 px, focus at infinity, a
+focus bracket and the adequacy test's false-alarm rate on noisy renders.
+"""
+
+import contextlib
+import io
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import Phase, given, settings, strategies as st
+
+import jaxdof
+from jaxdof._cli import main
+
+
+def _settings(examples: int):
+    # No shrinking: a failing fit is reported at once (shrinking would refit for minutes).
+    return settings(
+        max_examples=examples,
+        deadline=None,
+        derandomize=True,
+        database=None,
+        phases=[Phase.explicit, Phase.generate],
+    )
+
+
+# What `render` offers, as keywords: the plain soft scatter (its default), with the footprint
+# correction, the two occlusion renders, and `auto` (the scene's treatment at the true lens).
+MODELS = {
+    "soft": {},
+    "soft+footprint": {"footprint": True},
+    "local_occlusion": {"method": "local_occlusion"},
+    "occlusion": {"method": "occlusion"},
+    "auto": {"method": "auto"},
+}
+TOL = 1e-4  # relative, on the f-number and on the focus power (over the nearest depth's power)
+
+
+def _scene(kind: str, h: int, w: int, dtype, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(0.05, 1.0, size=(h, w, 3)).astype(dtype)
+    if kind == "ramp":
+        depth = np.linspace(1.0, 5.0, w, dtype=dtype)[None, :].repeat(h, 0)
+    else:  # a step between two slanted planes (two flat planes alone leave a near/far ambiguity)
+        x = np.linspace(0.0, 1.0, w, dtype=dtype)
+        depth = np.where(x < 0.5, 1.2 + x, 3.0 + 2 * x)[None, :].repeat(h, 0).astype(dtype)
+    return image, depth
+
+
+def _lens(n, d_f, width):
+    return jaxdof.ThinLens.from_sensor(0.05, n, d_f, sensor_width=0.0048, image_width=width)
+
+
+def _errors(fit, truth, depth):
+    """Relative f-number error and focus-power error over the nearest depth's power."""
+    n = float(np.asarray(fit.lenses.f_number).reshape(-1)[0])
+    d_f = float(np.asarray(fit.lenses.focus_distance).reshape(-1)[0])
+    d_t = float(truth.focus_distance)
+    power = lambda d: 0.0 if np.isinf(d) else 1.0 / d
+    e_n = n / float(truth.f_number) - 1
+    e_u = (power(d_f) - power(d_t)) * float(np.min(depth))
+    return e_n, e_u
+
+
+def _round_trip(model: str, kind: str, n: float, d_f: float, dtype, shape=(40, 56)):
+    image, depth = _scene(kind, *shape, dtype)
+    truth = _lens(n, d_f, shape[1])
+    photo = jaxdof.render(image, depth, truth, **MODELS[model])
+    start = _lens(1.5 * n, 0.8 * d_f if np.isfinite(d_f) else 20.0, shape[1])
+    fit = jaxdof.fit_lens(image, depth, photo, start)
+    e_n, e_u = _errors(fit, truth, depth)
+    label = f"{model} {kind} N={n:.3g} d_f={d_f:.3g}: {fit.message} | {fit.treatment}"
+    assert bool(fit.success), label
+    assert abs(e_n) < TOL and abs(e_u) < TOL, f"{label}: N {e_n:+.2e}, power {e_u:+.2e}"
+    return fit
+
+
+# Lenses whose circles over the ramp (1-5 m) and the step (1.2-1.7 m, 4-5 m) on a 56 px, 4.8 mm sensor
+# run from about 0.3 px to 5 px: f/2-f/11, focused at 1.8-3.5 m.
+@_settings(5)
+@given(
+    model=st.sampled_from(sorted(MODELS)),
+    kind=st.sampled_from(["ramp", "step"]),
+    n=st.floats(2.0, 11.0),
+    d_f=st.floats(1.8, 3.5),
+)
+def test_default_fit_recovers_every_render_float32(model, kind, n, d_f):
+    _round_trip(model, kind, n, d_f, np.float32)
+
+
+@_settings(3)
+@given(
+    model=st.sampled_from(sorted(MODELS)),
+    kind=st.sampled_from(["ramp", "step"]),
+    n=st.floats(2.0, 11.0),
+    d_f=st.floats(1.8, 3.5),
+)
+def test_default_fit_recovers_every_render_float64(model, kind, n, d_f):
+    _round_trip(model, kind, n, d_f, np.float64)  # (the tests run with x64 on: conftest.py)
+
+
+@pytest.mark.slow
+@_settings(10)
+@given(
+    model=st.sampled_from(sorted(MODELS)),
+    kind=st.sampled_from(["ramp", "step"]),
+    n=st.floats(1.0, 16.0),
+    d_f=st.one_of(st.floats(1.5, 6.0), st.just(float("inf"))),
+)
+def test_default_fit_recovers_every_render_wide(model, kind, n, d_f):
+    """Circles from under a pixel (f/16 at 4-6 m) to about 30 px (f/1 at infinity on a 4.8 mm
+    sensor of 96 px), focus at infinity included, on a frame that leaves pixels inside the
+    border band."""
+    _round_trip(model, kind, n, d_f, np.float32, shape=(96, 128))
+
+
+@pytest.mark.slow
+def test_default_fit_recovers_a_rendered_bracket():
+    """A focus bracket of three renders through one f-number: focal length and f-number shared,
+    each focus its own."""
+    image, depth = _scene("ramp", 40, 56, np.float32)
+    truths = [_lens(2.8, d, 56) for d in (1.6, 2.5, 4.0)]
+    photos = [jaxdof.render(image, depth, t) for t in truths]
+    starts = [_lens(4.0, 0.8 * d, 56) for d in (1.6, 2.5, 4.0)]
+    fit = jaxdof.fit_lens(
+        image, depth, photos, starts, free=("f_number", "focus_distance"), shared=("f_number",)
+    )
+    assert bool(fit.success), fit.message
+    np.testing.assert_allclose(np.asarray(fit.lenses.f_number), 2.8, rtol=TOL)
+    np.testing.assert_allclose(
+        np.asarray(fit.lenses.focus_distance), [1.6, 2.5, 4.0], rtol=TOL * 1.6
+    )
+
+
+@pytest.mark.slow
+def test_adequacy_passes_noisy_renders_at_its_nominal_rate():
+    """The default fit of a render plus Gaussian noise (sigma 1 % of the mean) is consistent at
+    about the test's nominal rate (level 0.01): over 16 noise draws, at most 2 inconsistent
+    (binomial(16, 0.01) exceeds 2 with probability 5e-4), and the truth within 3 standard errors
+    of every consistent fit."""
+    image, depth = _scene("ramp", 40, 56, np.float32)
+    truth = _lens(2.8, 2.5, 56)
+    clean = np.asarray(jaxdof.render(image, depth, truth))
+    start = _lens(4.2, 2.0, 56)
+    inconsistent = 0
+    for seed in range(16):
+        noise = np.random.default_rng(100 + seed).normal(0, 0.01 * clean.mean(), clean.shape)
+        fit = jaxdof.fit_lens(image, depth, (clean + noise).astype(np.float32), start)
+        if not bool(fit.adequacy["adequate"]):
+            inconsistent += 1
+            continue
+        n_err = abs(float(fit.lenses.f_number[0]) - 2.8)
+        assert n_err < 3 * float(fit.stderr["f_number"]), fit.summary()
+    assert inconsistent <= 2
+
+
+def _readme_example() -> str:
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    section = text[text.index("## Quick example") :]
+    found = re.search(r"```python\n(.*?)```", section, re.S)
+    assert found, "the README's quick example has no python block"
+    return found.group(1)
+
+
+def test_readme_quick_example_recovers_its_lens():
+    """The README's quick example, run as written: it prints success, and the truth lies within
+    the reported standard errors (and 1e-3) of the fitted lens."""
+    code = _readme_example()
+    out = io.StringIO()
+    ns: dict = {}
+    with contextlib.redirect_stdout(out):
+        exec(compile(code, "README.md", "exec"), ns)
+    printed = out.getvalue()
+    fit, truth = ns["fit"], ns["truth"]
+    assert "success" in printed and "FAILED" not in printed, printed
+    assert bool(fit.success)
+    for name in ("f_number", "focus_distance"):
+        got = float(np.asarray(getattr(fit.lenses, name)).reshape(-1)[0])
+        want = float(getattr(truth, name))
+        assert abs(got / want - 1) < 1e-3, (name, got, want)
+        assert abs(got - want) <= 3 * float(fit.stderr[name]) + 1e-6 * want, printed
+
+
+def test_cli_render_then_fit_recovers_the_lens(tmp_path):
+    """`jaxdof render` then `jaxdof fit` on the same files, default options: exit 0, the lens."""
+    image, depth = _scene("ramp", 40, 56, np.float32)
+    np.save(tmp_path / "sharp.npy", image)
+    np.save(tmp_path / "depth.npy", depth)
+    sensor = ["--sensor-width", "4.8mm"]
+    truth = ["--focal-length", "50mm", "--f-number", "2.8", "--focus", "2.5m", *sensor]
+    photo = tmp_path / "photo.npy"
+    sharp, dep = str(tmp_path / "sharp.npy"), str(tmp_path / "depth.npy")
+    assert main(["render", sharp, dep, "-o", str(photo), *truth, "--quiet"]) == 0
+    start = ["--focal-length", "50mm", "--f-number", "4", "--focus", "2m", *sensor]
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(["fit", sharp, dep, str(photo), *start, "--json", "--quiet"])
+    assert code == 0, out.getvalue()
+    obj = json.loads(out.getvalue())
+    assert obj["success"] is True
+    lens = obj["lenses"][0]
+    assert abs(lens["f_number"] / 2.8 - 1) < 1e-3 and abs(lens["focus_distance"] / 2.5 - 1) < 1e-3
