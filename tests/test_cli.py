@@ -419,13 +419,20 @@ def test_fit_output_focus_at_infinity(capsys):
     text = capsys.readouterr().out
     assert "recovered lens:" in text and "inf m" in text and "(held)" in text
     assert "pixels used 1000 (border 3 px)" in text and "did NOT converge (max_steps)" in text
-    # An inconsistent fit: the verdict and the inflated standard errors.
+    # An inconsistent fit: a lens with inflated standard errors (success), and the verdict.
     test = {**summary["adequacy"], "adequate": False, "p_value": 1e-9, "inflation": 2.5}
-    bad = {**summary, "status": "inconsistent", "adequacy": test, "stderr_kind": "tile spread"}
+    bad = {
+        **summary,
+        "success": True,
+        "status": "inconsistent",
+        "adequacy": test,
+        "stderr_kind": "tile spread",
+    }
     report.print_fit(bad, ["far.npy"], [], as_json=False)
     text = capsys.readouterr().out
     assert "model check: INCONSISTENT (p = 1e-09, 9 tiles)" in text
-    assert "standard errors: tile spread (noise x 2.5)" in text and "FAILED (inconsistent)" in text
+    assert "standard errors: tile spread (noise x 2.5)" in text and "FAILED" not in text
+    assert "converged, standard errors inflated to the tiles' spread" in text
 
 
 def test_render_focus_at_infinity(files, tmp_path):

@@ -16,7 +16,6 @@ import re
 from pathlib import Path
 
 import numpy as np
-import pytest
 from hypothesis import Phase, given, settings, strategies as st
 
 import jaxdof
@@ -109,7 +108,6 @@ def test_default_fit_recovers_every_render_float64(model, kind, n, d_f):
     _round_trip(model, kind, n, d_f, np.float64)  # (the tests run with x64 on: conftest.py)
 
 
-@pytest.mark.slow
 @_settings(10)
 @given(
     model=st.sampled_from(sorted(MODELS)),
@@ -124,7 +122,6 @@ def test_default_fit_recovers_every_render_wide(model, kind, n, d_f):
     _round_trip(model, kind, n, d_f, np.float32, shape=(96, 128))
 
 
-@pytest.mark.slow
 def test_default_fit_recovers_a_rendered_bracket():
     """A focus bracket of three renders through one f-number: focal length and f-number shared,
     each focus its own."""
@@ -142,7 +139,6 @@ def test_default_fit_recovers_a_rendered_bracket():
     )
 
 
-@pytest.mark.slow
 def test_adequacy_passes_noisy_renders_at_its_nominal_rate():
     """The default fit of a render plus Gaussian noise (sigma 1 % of the mean) is consistent at
     about the test's nominal rate (level 0.01): over 16 noise draws, at most 2 inconsistent

@@ -93,7 +93,9 @@ def print_fit(
     if line is not None:
         print(line)
     status = summary["status"]
-    if summary["success"]:
+    if summary["success"] and status == "inconsistent":
+        verdict = "converged, standard errors inflated to the tiles' spread"
+    elif summary["success"]:
         verdict = "converged"
     elif status == "max_steps":
         verdict = "did NOT converge (max_steps)"

@@ -31,9 +31,10 @@ class RESULTS(eqxi.Enumeration):  # pyright: ignore
     - `degenerate`: the data do not determine every free field (a rank-deficient Jacobian).
     - `window`: the fitted circles outgrow the given filter window (`max_radius`).
     - `ambiguous`: distinct lenses fit equally well (e.g. the near/far ambiguity).
-    - `inconsistent`: the solve converged, but the photo is not consistent with the model: parts
+    - `inconsistent`: the solve converged, but the photo is not fully explained by the model: parts
       of it pull towards different lenses beyond their noise (the model-adequacy test,
-      `FitResult.adequacy`); the standard errors are inflated to the spread between the parts.
+      `FitResult.adequacy`); the standard errors are inflated to the spread between the parts,
+      and with them the lens can be used (`success` is `True`).
 
     `window` and `ambiguous` are found by `fit_lens` only (`solve_lens` has one start and a fixed
     window).
@@ -66,12 +67,13 @@ class RESULTS(eqxi.Enumeration):  # pyright: ignore
         "photo at another focus distance, or fix the focus distance"
     )
     inconsistent = (
-        "the photo is not consistent with the model: tiles of it pull towards different lenses "
-        "beyond their noise (a model-adequacy test), so the lens is biased by what the model "
-        "lacks; the standard errors are inflated to the spread between the tiles. Common causes: "
-        "occlusion at depth edges (try method='occlusion' or a weight that leaves the edges "
-        "out), vignetting or uneven exposure (exposure=True fits one gain and offset), a "
-        "non-circular aperture, or a depth map that does not match the photo"
+        "the photo is not fully explained by the model: tiles of it pull towards different lenses "
+        "beyond their noise (a model-adequacy test), so the standard errors are inflated to the "
+        "spread between the tiles, which covers the bias of what the model lacks; the lens with "
+        "these errors can be used. What the model may lack: vignetting or uneven exposure "
+        "(exposure=True fits a gain and offset), a misregistered or magnified photo, occlusion "
+        "at depth edges it does not render, a non-circular aperture, camera encoding, or a depth "
+        "map that does not match the photo"
     )
 
 
@@ -203,7 +205,9 @@ class FitResult(eqx.Module):
     - `condition`: condition number of the column-scaled Jacobian at the solution.
     - `status`: a `jaxdof.RESULTS` member (traced; one per batch element under `vmap`), e.g.
       `result.status == jaxdof.RESULTS.successful`.
-    - `success`: `True` when the fit converged to a determined, unambiguous lens.
+    - `success`: `True` when the lens and its standard errors can be trusted: the fit converged to
+      a determined, unambiguous lens, with errors from the noise, or (status `inconsistent`)
+      inflated to the spread between tiles of the photo that disagree beyond their noise.
     - `notes`: `fit_lens`'s explanations in words (refits, the competing lens, ...); `""` if none.
     - `max_radius`: the filter window (pixels) the fit used (at full resolution).
     - `pixels_used`: the number of photo pixels (over targets, rows and columns) with non-zero

@@ -409,7 +409,8 @@ def _assemble(spec: _Spec, model: _Model, point, stats, check, args, single) -> 
         num_steps=jnp.asarray(num_steps),
         condition=stats["condition"],
         status=status,
-        success=status == RESULTS.successful,
+        # An inconsistent fit's lens and its (inflated) errors can be used: success.
+        success=(status == RESULTS.successful) | (status == RESULTS.inconsistent),
         focus_power_stderr=se_power[0] if single else se_power,
         pixels_used=_n_pixels(targets, sqrt_w),
         adequacy=check,
