@@ -35,6 +35,7 @@ from ._fit import (
     fit_lens as fit_lens,
     solve_lens as solve_lens,
 )
+from ._holes import depth_holes as depth_holes, fill_depth_holes as fill_depth_holes
 from ._lens import (
     ThinLens as ThinLens,
     coc_radius as coc_radius,

@@ -275,8 +275,10 @@ def read_depth(
       through `jaxdof.linearize_depth(z, near, far)`;
     - `inverse`: the (scaled) values are inverse depth in 1/m; `0` means infinitely far.
 
-    Raises `InputError` for NaN or infinite values in the file, several different channels, or a
-    depth that is not positive.
+    Pixels without a depth (NaN in a float file; 0 or negative after scaling, except 0 in an
+    inverse-depth file, which is infinitely far) are returned as NaN: holes (`jaxdof.depth_holes`).
+
+    Raises `InputError` for several different channels, or a depth map without any data.
     """
     raw = _read_raw(path, "depth", option)
     if raw.ndim == 3:
@@ -290,12 +292,7 @@ def read_depth(
     if zbuffer and inverse:
         raise InputError("--zbuffer and --inverse-depth cannot be combined")
     if raw.dtype.kind == "f":
-        if not np.all(np.isfinite(raw)):
-            raise InputError(
-                f"{path}: depth contains NaN or infinite values ({option}); give far points a "
-                "large finite depth (e.g. 1e6 m)"
-            )
-        values = raw.astype(np.float64)
+        values = raw.astype(np.float64)  # NaN: no data (a hole); inf: infinitely far
     elif raw.dtype.kind in "ui":
         values = raw.astype(np.float64)
         if zbuffer:
@@ -340,10 +337,13 @@ def read_depth(
                 depth = np.where(values > 0, 1.0 / np.where(values > 0, values, 1.0), np.inf)
         else:
             depth = values
-    if not np.all(depth > 0):
-        raise InputError(
-            f"{path}: depth must be positive metres everywhere (found {np.nanmin(depth):g}) ({option})"
-        )
+    # 0 or negative metres (and NaN) are no data, as depth sensors write it: holes, kept as NaN
+    # (`jaxdof.depth_holes`); `fit` leaves the photo pixels they reach out, `render` fills them
+    # when asked (--fill-holes).
+    with np.errstate(invalid="ignore"):
+        depth = np.where(depth > 0, depth, np.nan)
+    if np.all(np.isnan(depth)):
+        raise InputError(f"{path}: depth has no data: every pixel is 0, negative or NaN ({option})")
     return np.ascontiguousarray(depth, dtype=np.float32)
 
 

@@ -29,6 +29,7 @@ from ._filters import (
     coc_filter,
 )
 from ._filters.common import check_max_radius, is_concrete
+from ._holes import depth_holes, fill_depth_holes
 from ._lens import ThinLens, _check_depth, _error_if_invalid, coc_radius
 from ._scene import OCCLUSION_METHOD, scene_treatment
 
@@ -47,6 +48,7 @@ def render(
     footprint: bool | None = None,
     downsample: int = 1,
     band_rows: int | None = None,
+    fill_holes: bool = False,
 ) -> Image:
     r"""Render the depth of field of `lens` from an all-in-focus image and its depth map.
 
@@ -108,6 +110,12 @@ def render(
       (`Occlusion`'s depth layers and `Jitter`'s per-pixel pattern choice are drawn over the
       whole frame): `ValueError` for those.
 
+    - `fill_holes`: a depth map with holes (NaN, 0 or negative: no data, as depth sensors leave
+      them; `inf` is a depth) is refused with a `ValueError` unless this is `True`, which fills
+      each hole with its nearest pixel's depth (`jaxdof.fill_depth_holes`; concrete depth only).
+      What the render makes of a hole is a guess; `fit_lens` fills them itself and leaves the
+      photo pixels they reach out of the fit.
+
     **Returns:** the defocused image, `image`'s shape (each spatial axis divided by `downsample`).
 
     **Invalid inputs** (NaN or negative depth, depth not beyond the focal length, a lens with a
@@ -150,6 +158,7 @@ def render(
         image, depth = (x if isinstance(x, jax.Array) else np.asarray(x) for x in (image, depth))
     else:
         image, depth = jnp.asarray(image), jnp.asarray(depth)
+    depth = _holes_filled(depth, fill_holes)
     _check_inputs(image, depth, lens)
     method, footprint = _scene_choice(method, depth, lens, s, footprint, bands)
     options = dict(method=method, normalize=normalize, footprint=footprint, s=s)
@@ -160,6 +169,23 @@ def render(
     depth = _error_if_invalid(depth, lens)  # traced: error at run time (equinox.error_if)
     radius = _circles(image, depth, lens, s)
     return _filter(image, depth, radius, window=window, **options)
+
+
+def _holes_filled(depth, fill_holes: bool):
+    """The depth map with its holes filled (`fill_holes`), or a `ValueError` naming the option
+    when it has holes and that was not asked; traced depth as it is."""
+    if not is_concrete(depth) or np.ndim(depth) != 2:
+        return depth
+    holes = depth_holes(depth)
+    if not holes.any():
+        return depth
+    if not fill_holes:
+        raise ValueError(
+            f"depth has {int(holes.sum())} holes (NaN, 0 or negative: no data); pass "
+            "fill_holes=True to fill each from its nearest pixel (jaxdof render --fill-holes)"
+        )
+    filled = fill_depth_holes(np.asarray(depth))
+    return filled if isinstance(depth, np.ndarray) else jnp.asarray(filled)
 
 
 def _scene_choice(method, depth, lens: ThinLens, s: int, footprint, bands: bool):

@@ -64,6 +64,8 @@ class Treatment:
     - `border`: the band along the frame's edges left out (photo px; set after the fit).
     - `forced`: the choices the caller made (`"occlusion"`, `"footprint"`, `"edge_weight"`);
       the rest were chosen by the rules above.
+    - `depth_holes`: image pixels without a depth (NaN, 0, negative; filled for the render) and
+      `hole_pixels`: the photo pixels within a circle's reach of them, left out of the fit.
     - `selected`: what the photo said of the scene's choices (a fit's only; `jaxdof/_fit/select.py`):
       e.g. `"footprint off (chi2 812)"` where the fit without it explains the photo better.
     """
@@ -78,6 +80,8 @@ class Treatment:
     border: int = 0
     forced: tuple[str, ...] = ()
     selected: tuple[str, ...] = ()
+    depth_holes: int = 0
+    hole_pixels: int = 0
 
     def __str__(self) -> str:
         parts = []
@@ -88,6 +92,11 @@ class Treatment:
         if self.footprint:
             parts.append("footprint")
         parts.append(f"border {self.border} px")
+        if self.depth_holes:
+            parts.append(
+                f"{self.depth_holes} depth holes filled ({self.hole_pixels} photo px near them "
+                "left out)"
+            )
         text = ", ".join(parts)
         text = f"{text} (forced: {', '.join(self.forced)})" if self.forced else text
         return f"{text}; photo: {', '.join(self.selected)}" if self.selected else text

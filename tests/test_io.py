@@ -180,13 +180,28 @@ def test_depth_encodings(tmp_path):
     np.testing.assert_allclose(d, metres, rtol=2e-5)
 
 
+def test_depth_holes_are_nan_and_infinity_stays(tmp_path):
+    """NaN, 0 and negative depths are holes (no data), read as NaN; `inf` is infinitely far; an
+    integer file's 0 counts are holes, an inverse-depth file's 0 is infinity."""
+    values = np.array([[1.0, 0.0, np.nan], [-2.0, np.inf, 2.0]])
+    np.save(tmp_path / "d.npy", values)
+    d = read_depth(str(tmp_path / "d.npy"))
+    assert np.isnan(d[0, 1]) and np.isnan(d[0, 2]) and np.isnan(d[1, 0])
+    assert d[1, 1] == np.inf and d[0, 0] == 1.0 and d[1, 2] == 2.0
+    mm = np.array([[1500, 0], [2000, 2500]], np.uint16)
+    np.save(tmp_path / "mm.npy", mm)
+    d = read_depth(str(tmp_path / "mm.npy"), scale=1e-3)
+    assert np.isnan(d[0, 1]) and np.allclose(d[[0, 1, 1], [0, 0, 1]], [1.5, 2.0, 2.5])
+    inv = read_depth(str(tmp_path / "mm.npy"), scale=1e-3, inverse=True)
+    assert inv[0, 1] == np.inf
+
+
 @pytest.mark.parametrize(
     "values,kwargs,match",
     [
-        (np.full((2, 2), np.nan), {}, "NaN or infinite"),
-        (np.full((2, 2), np.inf), {}, "NaN or infinite"),
-        (np.array([[1.0, 0.0], [1.0, 1.0]]), {}, "positive"),
-        (np.array([[1.0, -2.0], [1.0, 1.0]]), {}, "positive"),
+        (np.full((2, 2), np.nan), {}, "no data"),
+        (np.zeros((2, 2)), {}, "no data"),
+        (np.full((2, 2), -1.0), {}, "no data"),
         (np.array([[1.0, -2.0], [1.0, 1.0]]), {"inverse": True}, "inverse depth must be >= 0"),
         (
             np.array([[0.5, 1.5], [0.0, 1.0]]),

@@ -206,3 +206,33 @@ def test_cli_render_then_fit_recovers_the_lens(tmp_path):
     assert obj["success"] is True
     lens = obj["lenses"][0]
     assert abs(lens["f_number"] / 2.8 - 1) < 1e-3 and abs(lens["focus_distance"] / 2.5 - 1) < 1e-3
+
+
+def test_cli_fit_with_an_8bit_photo_and_a_16bit_depth_png_with_holes(tmp_path):
+    """What a camera and a depth sensor give: an 8-bit sRGB PNG photo and a 16-bit depth PNG in
+    millimetres with 0 where the sensor has no data. `jaxdof fit`: exit 0 and the lens."""
+    import imageio.v3 as iio
+
+    image, depth = _scene("step", 40, 56, np.float32)
+    encode = lambda x: np.round(255 * np.clip(x, 0, 1) ** (1 / 2.2)).astype(np.uint8)
+    decode = lambda x: (x.astype(np.float32) / 255) ** 2.2  # what the image really is
+    iio.imwrite(tmp_path / "sharp.png", encode(image))
+    truth = _lens(2.8, 2.5, 56)
+    photo = np.asarray(jaxdof.render(decode(encode(image)), depth, truth))
+    iio.imwrite(tmp_path / "photo.png", encode(photo))
+    mm = np.round(depth * 1000).astype(np.uint16)
+    mm[10:13, 8:12] = 0
+    mm[25:27, 40:44] = 0
+    iio.imwrite(tmp_path / "depth.png", mm)
+    out = io.StringIO()
+    argv = [str(tmp_path / n) for n in ("sharp.png", "depth.png", "photo.png")]
+    lens = ["--focal-length", "50mm", "--f-number", "4", "--focus", "2m", "--sensor-width", "4.8mm"]
+    with contextlib.redirect_stdout(out):
+        code = main(["fit", *argv, "--depth-scale", "1mm", *lens, "--json", "--quiet"])
+    assert code == 0, out.getvalue()
+    obj = json.loads(out.getvalue())
+    assert obj["success"] is True and obj["treatment"]["depth_holes"] == 20
+    fitted = obj["lenses"][0]
+    assert (
+        abs(fitted["f_number"] / 2.8 - 1) < 0.01 and abs(fitted["focus_distance"] / 2.5 - 1) < 0.01
+    )

@@ -200,3 +200,65 @@ def test_render_auto_in_bands_says_it_leaves_occlusion_out(caplog):
     assert "bands cannot render" in caplog.text
     want = jaxdof.render(image, depth, lens, method="soft", footprint=True)
     np.testing.assert_allclose(np.asarray(got), np.asarray(want), atol=1e-6)  # float32 rounding
+
+
+def test_depth_holes_are_filled_and_the_pixels_they_reach_left_out():
+    """Depth as sensors give it (issue 34): NaN, 0 and negative depths are holes. `fit_lens` fills
+    them, leaves the photo pixels within a circle's reach of them out of the fit, reports how
+    many, and recovers the lens; `render` refuses them unless `fill_holes=True`; a depth map that
+    is all holes is one clear error."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.05, 1, (32, 40, 3)).astype(np.float32)
+    depth = np.linspace(1.0, 5.0, 40, dtype=np.float32)[None].repeat(32, 0)
+    truth = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=40)
+    photo = jaxdof.render(image, depth, truth)
+    holey = depth.copy()
+    holey[8:11, 10:13] = np.nan
+    holey[20:22, 25:28] = 0.0
+    holey[5, 30] = -1.0
+    assert jaxdof.depth_holes(holey).sum() == 9 + 6 + 1
+    with pytest.raises(ValueError, match="fill_holes=True"):
+        jaxdof.render(image, holey, truth)
+    filled = jaxdof.fill_depth_holes(holey)
+    assert not jaxdof.depth_holes(filled).any()
+    assert np.all(filled[~jaxdof.depth_holes(holey)] == holey[~jaxdof.depth_holes(holey)])
+    np.testing.assert_array_equal(
+        np.asarray(jaxdof.render(image, holey, truth, fill_holes=True)),
+        np.asarray(jaxdof.render(image, filled, truth)),
+    )
+    start = jaxdof.ThinLens.from_sensor(0.05, 4.0, 2.0, sensor_width=0.0048, image_width=40)
+    fit = jaxdof.fit_lens(image, holey, photo, start)
+    t = fit.treatment
+    assert t is not None and t.depth_holes == 16 and t.hole_pixels > 16
+    assert "depth holes filled" in str(t)
+    assert bool(fit.success), fit.message
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=1e-4)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=1e-4)
+    with pytest.raises(ValueError, match="no data"):
+        jaxdof.fit_lens(image, np.full_like(depth, np.nan), photo, start)
+
+
+@pytest.mark.parametrize("n", [8, 24, 64, 200])
+def test_depth_edges_are_jumps_not_slopes(n):
+    """`depth_edges` (issue 33): no edge on a ramp of any steepness (linear in depth, or a plane:
+    linear in inverse depth, as a floor at a grazing angle), nor at a crease where two of them
+    meet; an edge at a jump on top of any of them, also one spread over two pixels, and against
+    the sky."""
+    x = np.arange(n, dtype=np.float64)
+    for near, far in ((0.5, 50.0), (1.0, 6.0), (2.0, 2.2), (1.0, 1000.0)):
+        lin = np.linspace(near, far, n)
+        plane = 1 / np.linspace(1 / near, 1 / far, n)
+        for ramp in (lin, plane):
+            assert not jaxdof.depth_edges(ramp[None].repeat(5, 0)).any(), (near, far)
+            if n < 24 and far / near > 10:
+                continue  # a 100x ramp over 8 px: its near end outsteps a doubling in 1/d
+            jump = np.where(x < n // 2, ramp, 2 * ramp + 0.5)
+            edges = jaxdof.depth_edges(jump[None].repeat(5, 0))[0]
+            assert edges[n // 2 - 1] and edges[n // 2] and edges.sum() <= 4, (near, far)
+    crease = np.where(x < n // 2, 3.0, 3.0 + 0.3 * (x - n // 2))
+    assert not jaxdof.depth_edges(crease[None].repeat(5, 0)).any()
+    spread = np.where(x < n // 2, 2.0, 4.0)
+    spread[n // 2] = 3.0
+    assert jaxdof.depth_edges(spread[None].repeat(5, 0))[0, n // 2 - 1 : n // 2 + 2].all()
+    sky = np.where(x < n // 2, 3.0, np.inf)
+    assert jaxdof.depth_edges(sky[None].repeat(5, 0))[0, n // 2 - 1 : n // 2 + 1].all()

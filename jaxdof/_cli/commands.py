@@ -112,6 +112,13 @@ def _render(args, display: Display) -> int:
     inputs = [args.image, args.depth]
     img, depth = _read_inputs(args, display)
     check_output(args.out, inputs)
+    holes = int(jaxdof.depth_holes(depth).sum())
+    if holes and not args.fill_holes:
+        raise InputError(
+            f"{args.depth}: depth has {holes} holes (0, negative or NaN: no data); --fill-holes "
+            "fills each from its nearest pixel"
+        )
+    depth = jaxdof.fill_depth_holes(depth) if holes else depth
     width = _photo_width(args, img.array.shape)
     sensor_width = FULL_FRAME_WIDTH if args.sensor_width is None else args.sensor_width
     lens = _lens(args.focal_length, args.f_number, args.focus, sensor_width, width)
@@ -407,7 +414,7 @@ def _start(
     defaults: dict[str, float] = {
         "focal_length": focal_length,
         "f_number": 4.0,
-        "focus_distance": float(np.median(depth)),
+        "focus_distance": float(np.nanmedian(depth)),  # (NaN: depth holes)
         "sensor_width": FULL_FRAME_WIDTH,
     }
 
@@ -487,9 +494,8 @@ def fit_call(args, display: Display | None = None) -> FitCall:
     model = dict(method=args.method, footprint=args.footprint, downsample=args.downsample)
     verbose: FitProgress | bool = False
     if not args.quiet:
-        decode = fit_lens_decoder(
-            init, depth.astype(img.array.dtype), args.free, args.shared, len(targets)
-        )
+        filled = jaxdof.fill_depth_holes(depth).astype(img.array.dtype)
+        decode = fit_lens_decoder(init, filled, args.free, args.shared, len(targets))
         verbose = FitProgress(display, decode=decode, fields=args.free, max_steps=args.max_steps)
     kwargs = dict(
         free=tuple(args.free),
@@ -579,7 +585,7 @@ def run_fit(args) -> int:
             plot.plot_fit(
                 args.plot,
                 call.image,
-                call.depth,
+                jaxdof.fill_depth_holes(call.depth),  # what the fit rendered
                 call.targets,
                 result,
                 args.targets,

@@ -313,6 +313,12 @@ def _add_filter_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="keep brightness at the borders (divide by the filtered image of ones)",
     )
+    g.add_argument(
+        "--fill-holes",
+        action="store_true",
+        help="fill depth holes (0, negative or NaN: no data) from their nearest pixel; "
+        "without it a depth map with holes is refused (fit leaves the pixels they reach out)",
+    )
     _add_footprint_options(g)
 
 

@@ -31,11 +31,12 @@ from .prepare import (
     _check_options,
     check_differentiable,
     forward_model,
+    leave_out_holes,
     prepare_problem,
 )
 from .residual import _Model
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
-from .select import alternatives, kept, prefers, refit_call, selected
+from .select import alternatives, kept, prefers, refit_call, rounding_sigma, selected
 from .solve import default_solver, degenerate_at, finish, fit_starts, restate, run_stage
 from .strategies import (
     _COARSE_TOL,
@@ -885,13 +886,14 @@ def fit_lens(
     result = _fit_treated(**call)
     # The photo's say in what the scene chose (`select.py`): each choice dropped in turn, kept
     # only where the photo prefers it.
+    rounding = rounding_sigma(targets, np.asarray(result.loss).dtype)
     for name, changes in alternatives(result, call):
         try:
             alt = _fit_treated(**refit_call(result, call, changes))
         except ValueError:  # e.g. the simpler model leaves the free set undetermined
             result = kept(result, name, -np.inf)
             continue
-        better, chi2 = prefers(alt, result, np.asarray(result.loss).dtype)
+        better, chi2 = prefers(alt, result, rounding)
         result = selected(alt, result, name, chi2) if better else kept(result, name, chi2)
     return result
 
@@ -944,6 +946,12 @@ def _fit_treated(
         window = window_for(forward.max_circle(rows0, p.d), float(max(p.photo)))
     else:
         window = float(max_radius)
+    # The photo pixels that a depth hole's light reaches: the window's reach and the border's
+    # stencils (the border band of the window, `border_band`).
+    p, hole_pixels = leave_out_holes(p, float(forward.border_band(window)))
+    if p.holes is not None:
+        holes = int(p.holes.sum())
+        treatment = dataclasses.replace(treatment, depth_holes=holes, hole_pixels=hole_pixels)
     budget = use_tiles(tiles, p.photo)
     if budget is not None and not fits_tiles(p.photo, forward, window, budget):
         budget = None  # too few candidate tiles: the whole frame

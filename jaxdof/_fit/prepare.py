@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._filters.common import is_concrete
+from .._holes import depth_holes, fill_depth_holes, near_holes
 from .._lens import ThinLens
 from .forward import AbstractForwardModel, DefocusModel
 from .layout import ALL_FIELDS, LENS_FIELDS, _Arr, _Layout, _Spec
@@ -128,6 +129,7 @@ class Problem:
     d: np.ndarray  # depth, float64
     b: np.ndarray  # base, float64
     fcap: np.ndarray  # the layout's bound on f, float64
+    holes: np.ndarray | None = None  # (H, W) image pixels without a depth (filled in `depth`)
 
     @property
     def dtype(self):
@@ -147,6 +149,13 @@ def prepare_problem(
     image, depth, targets, init, weight, model: AbstractForwardModel, free, shared, exposure: bool
 ) -> Problem:
     """`_prepare` in numpy plus the checks that need values, and the layout: one `Problem`."""
+    # Depth holes (NaN, 0, negative: no data) are filled so that the render runs; the photo
+    # pixels their light reaches leave the residual once the window is known (`leave_out_holes`).
+    holes = depth_holes(depth) if np.ndim(depth) == 2 else None
+    if holes is not None and holes.any():
+        depth = fill_depth_holes(depth)
+    else:
+        holes = None
     # Checks and set-up in numpy on the host: two compiled calls per fit (`fit_starts`, `finish`)
     # and one transfer of a few small results back, not one device call per array operation.
     *arrays, single = _prepare(image, depth, targets, init, weight, model, xp=np)
@@ -174,8 +183,29 @@ def prepare_problem(
         )
     _, ratio = photo_and_ratio(model, image.shape)
     return Problem(
-        image, depth, targets, sqrt_w, base, bool(single), ratio, spec, layout, d, b, fcap
+        image, depth, targets, sqrt_w, base, bool(single), ratio, spec, layout, d, b, fcap, holes
     )
+
+
+def leave_out_holes(p: Problem, reach: float) -> tuple[Problem, int]:
+    """`p` with zero weight at the photo pixels within `reach` photo pixels (a circle and the
+    render's stencils) of a depth hole, and how many photo pixels that left out.
+
+    Raises `ValueError` when no photo pixel with weight is left."""
+    if p.holes is None:
+        return p, 0
+    near = near_holes(p.holes, reach * p.ratio, p.ratio)
+    keep = (~near).astype(p.dtype)
+    w = p.sqrt_w
+    fitted = np.any(w > 0, axis=(0, 3)) if w.ndim == 4 else np.any(w > 0, axis=0)
+    sqrt_w = w * (keep[None, ..., None] if w.ndim == 4 else keep[None])
+    if not np.any(sqrt_w > 0):
+        raise ValueError(
+            f"depth has {int(p.holes.sum())} holes (NaN, 0 or negative: no data) whose light "
+            f"reaches every fitted photo pixel (within {reach:.3g} px of a hole); too little is "
+            "left to fit: give a depth map with fewer holes"
+        )
+    return dataclasses.replace(p, sqrt_w=sqrt_w), int(np.sum(near & fitted))
 
 
 def _prepare(

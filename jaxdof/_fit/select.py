@@ -13,12 +13,12 @@ caller did not force) is dropped in turn, as a likelihood comparison between two
 same free parameters: the fit without it `T1` is solved from `T0`'s lens (one start, the same edge
 weight and border band, so the same pixels), and replaces `T0` when
 
-$$\Delta\chi^2 = \frac{n\,(m_0 - m_1)}{\sigma^2} > \texttt{SELECT\_CHI2}
-  \quad\text{and}\quad m_0 - m_1 > \text{the losses' rounding},$$
+$$\Delta\chi^2 = \frac{n\,(m_0 - m_1)}{\sigma^2} > \texttt{SELECT\_CHI2}$$
 
 with `m = 2 L / n` the mean squared weighted residual over the `n` residuals fitted and
 `sigma^2` the smaller of the two fits' residual variances (the noise, as nearly as either model
-sees it). With equal numbers of parameters the information criteria (AIC, BIC) all reduce to
+sees it), at least the float rounding's (`rounding_sigma`): where both fits are down to the
+rounding, the photo cannot tell them apart and the scene's choice stays. With equal numbers of parameters the information criteria (AIC, BIC) all reduce to
 comparing the losses; the margin keeps the scene's choice where the photo cannot tell the two
 apart (then their lenses agree to within their errors anyway), so a wrong switch needs the noise
 to favour the wrong model by `sqrt(SELECT_CHI2)` standard deviations of the difference.
@@ -90,9 +90,11 @@ def refit_call(result: FitResult, call: dict, changes: dict) -> dict:
     return {**call, **keep, **changes, "init": result.lenses, "starts": 1, "pyramid": None}
 
 
-def prefers(alt: FitResult, incumbent: FitResult, dtype) -> tuple[bool, float]:
+def prefers(alt: FitResult, incumbent: FitResult, rounding: float) -> tuple[bool, float]:
     """Whether the photo prefers `alt` to `incumbent` (module docstring), and the chi-square
-    difference `Delta chi^2` (positive: `alt` fits better)."""
+    difference `Delta chi^2` (positive: `alt` fits better). `rounding`: the residual standard
+    deviation that the data's float rounding alone leaves (`rounding_sigma`), the floor of the
+    noise: where both fits are down to it, the photo cannot tell them apart."""
     if _status(alt) not in _COMPARABLE:
         return False, -math.inf
     n0, n1 = _residuals(incumbent), _residuals(alt)
@@ -101,12 +103,19 @@ def prefers(alt: FitResult, incumbent: FitResult, dtype) -> tuple[bool, float]:
         return False, -math.inf
     m0, m1 = 2 * l0 / n0, 2 * l1 / n1
     s0, s1 = (float(np.asarray(r.sigma)) ** 2 for r in (incumbent, alt))
-    eps = float(np.finfo(dtype).eps)
-    # Each mean square carries its sum's rounding (`lm.loss_rounding`'s share of the sum).
-    rounding = eps * max(m0, m1)
-    sigma2 = max(min(s0, s1), rounding, np.finfo(dtype).tiny)
+    sigma2 = max(min(s0, s1), rounding**2, np.finfo(np.float64).tiny)
     chi2 = min(n0, n1) * (m0 - m1) / sigma2
-    return bool(chi2 > SELECT_CHI2 and m0 - m1 > 4 * rounding), chi2
+    return bool(chi2 > SELECT_CHI2 and max(s0, s1) > rounding**2), chi2
+
+
+def rounding_sigma(targets, dtype) -> float:
+    """The residual standard deviation that float rounding alone leaves on photos `targets`:
+    `16 eps rms(T)` (a float32 render of the true lens matches its own photo to about
+    `0.7 eps rms(T)`; the margin covers the longer sums of the occlusion renders)."""
+    t = np.asarray(targets, np.float64) if not isinstance(targets, (list, tuple)) else np.stack(
+        [np.asarray(x, np.float64) for x in targets]
+    )
+    return 16 * float(np.finfo(dtype).eps) * float(np.sqrt(np.mean(np.square(t))))
 
 
 def selected(alt: FitResult, incumbent: FitResult, label: str, chi2: float) -> FitResult:
