@@ -112,8 +112,10 @@ def rounding_sigma(targets, dtype) -> float:
     """The residual standard deviation that float rounding alone leaves on photos `targets`:
     `16 eps rms(T)` (a float32 render of the true lens matches its own photo to about
     `0.7 eps rms(T)`; the margin covers the longer sums of the occlusion renders)."""
-    t = np.asarray(targets, np.float64) if not isinstance(targets, (list, tuple)) else np.stack(
-        [np.asarray(x, np.float64) for x in targets]
+    t = (
+        np.asarray(targets, np.float64)
+        if not isinstance(targets, (list, tuple))
+        else np.stack([np.asarray(x, np.float64) for x in targets])
     )
     return 16 * float(np.finfo(dtype).eps) * float(np.sqrt(np.mean(np.square(t))))
 
