@@ -44,7 +44,8 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03, slope: float = EDGE_SLO
     - a jump, which neither surface beside it continues into, in depth and in inverse depth
       alike: for `v = d` and for `v = 1/d`, with `s_l = v_{p-1} - v_{p-2}` and
       `s_r = v_{q+2} - v_{q+1}` the steps of the surfaces two pixels out on either side (beyond
-      the frame, the other side's), `|D_v - s_l|` and `|D_v - s_r|` both exceed
+      the frame the pair's own: within two pixels of the frame's edge nothing is an edge, and
+      a fit leaves that band out anyway), `|D_v - s_l|` and `|D_v - s_r|` both exceed
       `slope max(|s_l|, |s_r|)` (`slope` 2 by default).
 
     A plane, however steep (a floor at a grazing angle, up to its horizon), is linear in inverse
@@ -80,11 +81,10 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03, slope: float = EDGE_SLO
 def _uncontinued(step: np.ndarray, slope: float) -> np.ndarray:
     """Whether each step `(n - 1, ...)` (the pair `(i, i + 1)`) differs from both the step two out
     on its left, `step[i - 2]`, and on its right, `step[i + 2]`, by more than `slope` times the
-    larger of them (beyond the frame the other side's stands in)."""
+    larger of them (beyond the frame the step itself: no evidence of a jump)."""
     flat = np.nan_to_num(step, nan=0.0, posinf=np.inf, neginf=-np.inf)
-    s_l, s_r = np.zeros_like(flat), np.zeros_like(flat)
+    s_l, s_r = flat.copy(), flat.copy()
     s_l[2:], s_r[:-2] = flat[:-2], flat[2:]
-    s_l[:2], s_r[-2:] = s_r[:2], s_l[-2:]
     tol = slope * np.maximum(np.abs(s_l), np.abs(s_r))
     return (np.abs(flat - s_l) > tol) & (np.abs(flat - s_r) > tol)
 
