@@ -53,7 +53,8 @@ def fill_depth_holes(depth: ArrayLike) -> np.ndarray:
         return d
     if holes.all():
         raise ValueError("depth has no data: every pixel is NaN, 0 or negative")
-    _, (rows, cols) = ndimage.distance_transform_edt(holes, return_indices=True)
+    found = ndimage.distance_transform_edt(holes, return_distances=False, return_indices=True)
+    rows, cols = np.asarray(found)
     d[holes] = d[rows[holes], cols[holes]]
     return d
 
@@ -64,4 +65,4 @@ def near_holes(holes: np.ndarray, reach: float, ratio: int = 1) -> np.ndarray:
     limit = float(max(reach, 0.0)) + 1.0
     near = edge_distance_to(holes, limit=limit) <= math.ceil(reach)
     h, w = near.shape
-    return near.reshape(h // ratio, ratio, w // ratio, ratio).any(axis=(1, 3))
+    return np.asarray(near.reshape(h // ratio, ratio, w // ratio, ratio).any(axis=(1, 3)))

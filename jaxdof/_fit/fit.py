@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+import scipy.stats
 from jaxtyping import ArrayLike
 
 from .._filters import AbstractMethod
@@ -36,7 +37,16 @@ from .prepare import (
 )
 from .residual import _Model
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
-from .select import alternatives, kept, prefers, refit_call, rounding_sigma, selected
+from .select import (
+    alternatives,
+    forced_exposure,
+    kept,
+    prefers,
+    refit_call,
+    rounding_sigma,
+    selected,
+    with_exposure,
+)
 from .solve import default_solver, degenerate_at, finish, fit_starts, restate, run_stage
 from .strategies import (
     _COARSE_TOL,
@@ -691,7 +701,7 @@ def fit_lens(
     weight: ArrayLike | None = None,
     max_radius: float | None = None,
     allow_degenerate: bool = False,
-    exposure: bool = False,
+    exposure: bool | None = None,
     starts: int | None = None,
     verbose: bool | Callable[..., None] = False,
     model: AbstractForwardModel | None = None,
@@ -745,7 +755,9 @@ def fit_lens(
       exceed the true largest circle.
     - `allow_degenerate`: return a fit whose free fields the data cannot all determine (with
       `success=False` and `inf` standard errors for the undetermined fields) instead of raising.
-    - `exposure`: also fit a gain and an offset per target (nuisance parameters).
+    - `exposure`: a gain and an offset per target (nuisance parameters): `None` (default)
+      decides from the photo (a score test at the fit without them, `SELECT_ALPHA`; fitted where
+      it rejects, reported in `FitResult.nuisances`), `True` fits them, `False` does not.
     - `starts`: number of starting points (default 4 when the focus distance is free, else 3): the
       `init` lens, then focus distances spread evenly in diopters over the scene's depth range
       (keeping `K` through `N` where possible), which covers the near/far ambiguity; with the focus
@@ -883,9 +895,10 @@ def fit_lens(
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
     call = dict(locals())
+    call["exposure"] = bool(exposure)
     result = _fit_treated(**call)
-    # The photo's say in what the scene chose (`select.py`): each choice dropped in turn, kept
-    # only where the photo prefers it.
+    # The photo's say in the treatment (`select.py`): each choice of the scene's changed in turn,
+    # kept only where the photo prefers it.
     rounding = rounding_sigma(targets, np.asarray(result.loss).dtype)
     for name, changes in alternatives(result, call):
         try:
@@ -895,6 +908,12 @@ def fit_lens(
             continue
         better, chi2 = prefers(alt, result, rounding)
         result = selected(alt, result, name, chi2) if better else kept(result, name, chi2)
+    if exposure is None:
+        # ... and in the exposure: a gain and an offset per photo where a score test at the fit
+        # without them rejects it (`select.with_exposure`).
+        result, call = with_exposure(result, call, _fit_treated, rounding)
+    else:
+        result = dataclasses.replace(result, nuisances=forced_exposure(result, bool(exposure)))
     return result
 
 
@@ -995,7 +1014,10 @@ def _fit_treated(
             failed, treatment=dataclasses.replace(treatment, border=failed.border)
         )
     result = dataclasses.replace(
-        result, border=used, treatment=dataclasses.replace(treatment, border=used)
+        result,
+        border=used,
+        treatment=dataclasses.replace(treatment, border=used),
+        nuisances={"exposure": _exposure_entry(info, p.spec)},
     )
     if chosen is not None:
         if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
@@ -1013,6 +1035,14 @@ def _fit_treated(
     ):
         info["determined_at_init"] = _determined_at_init(model_r, rows0, args, p)
     return _verdict(run, result, info, r_final, window, notes, allow_degenerate)
+
+
+def _exposure_entry(info, spec) -> dict:
+    """`FitResult.nuisances["exposure"]`: fitted or not, and the score test of one at this fit."""
+    dof = 2 * spec.n_targets
+    score = float(np.asarray(info.get("exposure_score", np.nan)))
+    p_value = float(scipy.stats.chi2.sf(score, dof)) if not spec.exposure else float("nan")
+    return {"fitted": bool(spec.exposure), "score": score, "dof": dof, "p_value": p_value}
 
 
 def _determined_at_init(model: _Model, rows0: np.ndarray, args, p) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import equinox as eqx
@@ -16,6 +17,30 @@ from .treatment import Treatment
 
 
 _UNITS = {"focal_length": "m", "f_number": "", "focus_distance": "m", "gain": "", "offset": ""}
+
+
+def nuisance_words(entry: dict) -> str:
+    """One nuisance's decision in words (`FitResult.nuisances[name]`)."""
+    how = "fitted" if entry.get("fitted") else "not fitted"
+    if entry.get("forced"):
+        return f"{how} (forced)"
+    if entry.get("exact"):
+        return f"{how} (the fit explains the photo to its float rounding)"
+    score, p = entry.get("score"), entry.get("p_value")
+    if score is None or p is None or not math.isfinite(float(p)):
+        return how
+    why = "the photo asked for it" if entry.get("chosen") else "the photo did not ask for it"
+    return f"{how} ({why}: score {float(score):.3g} on {entry.get('dof')} dof, p = {float(p):.2g})"
+
+
+def _json_nuisances(nuisances: dict | None) -> dict | None:
+    if nuisances is None:
+        return None
+    out = {}
+    for name, entry in nuisances.items():
+        out[name] = {k: (_json_float(v) if isinstance(v, float) else v) for k, v in entry.items()}
+        out[name]["text"] = nuisance_words(entry)
+    return out
 
 
 class RESULTS(eqxi.Enumeration):  # pyright: ignore
@@ -227,6 +252,9 @@ class FitResult(eqx.Module):
     - `treatment`: what `fit_lens` chose to model and leave out for this scene (occlusion, edge
       weight, footprint, border; a `jaxdof.Treatment`, `str()` says it in words); `None` from
       `solve_lens`, which models what it is given.
+    - `nuisances`: what `fit_lens` decided about each nuisance (today `"exposure"`, a gain and an
+      offset per photo): `{"fitted", "forced", "chosen", "score", "dof", "p_value"}`, the score
+      test at the fit without it (`chosen`: turned on by the photo); `None` from `solve_lens`.
 
     `message` is the status's message and the notes; `stderr_kind` says what the standard errors
     measure (`"noise"`, or `"tile spread"` when inflated); `lens` is the first target's lens;
@@ -255,6 +283,7 @@ class FitResult(eqx.Module):
     levels: int = eqx.field(static=True, default=1)
     tiles: tuple[tuple[int, int, int, int], ...] = eqx.field(static=True, default=())
     treatment: Treatment | None = eqx.field(static=True, default=None)
+    nuisances: dict | None = eqx.field(static=True, default=None)
 
     @property
     def lens(self) -> ThinLens:
@@ -322,6 +351,9 @@ class FitResult(eqx.Module):
                     "(1 / focus_distance)"
                 )
             lines.append(f"  {'K (blur scale)':15s} {float(lens.blur_scale):.6g} px")
+        exposure = (self.nuisances or {}).get("exposure")
+        if exposure:
+            lines.append(f"exposure: {nuisance_words(exposure)}")
         for name in ("gain", "offset"):
             if name in self.stderr:
                 vals = np.atleast_1d(np.asarray(getattr(self, name)))
@@ -383,6 +415,7 @@ class FitResult(eqx.Module):
             "levels": int(self.levels),
             "tiles": [list(box) for box in self.tiles],
             "treatment": None if self.treatment is None else self.treatment.to_dict(),
+            "nuisances": _json_nuisances(self.nuisances),
             "adequacy": {
                 k: bool(v) if k == "adequate" else _json_float(v) for k, v in self.adequacy.items()
             },

@@ -42,6 +42,8 @@ from .result import RESULTS, FitResult, code_of
 
 #: The chi-square margin by which the photo must prefer a simpler treatment (module docstring).
 SELECT_CHI2 = _tuning.SELECT_CHI2
+#: The level of the score test that turns a nuisance on (`with_exposure`).
+SELECT_ALPHA = _tuning.SELECT_ALPHA
 
 # Statuses whose lens is worth comparing: a converged fit, whatever its verdict.
 _COMPARABLE = ("successful", "inconsistent", "ambiguous", "window")
@@ -75,6 +77,11 @@ def refit_call(result: FitResult, call: dict, changes: dict) -> dict:
     photo may have led its fit astray: a soft render of circles under a pixel fitted with the
     footprint correction ended at 4.5 times the f-number, where the soft render is in its
     dead zone)."""
+    return _from(result, {**call, **_as_chosen(result, call), **changes})
+
+
+def _as_chosen(result: FitResult, call: dict) -> dict:
+    """The options that make a fit treat the scene as `result` did."""
     t = result.treatment
     assert t is not None
     keep = {
@@ -85,9 +92,7 @@ def refit_call(result: FitResult, call: dict, changes: dict) -> dict:
     }
     if call.get("method") is not None:
         keep["method"] = call["method"]
-    if _status(result) != "successful":
-        return {**call, **keep, **changes}
-    return {**call, **keep, **changes, "init": result.lenses, "starts": 1, "pyramid": None}
+    return keep
 
 
 def prefers(alt: FitResult, incumbent: FitResult, rounding: float) -> tuple[bool, float]:
@@ -151,6 +156,55 @@ def kept(incumbent: FitResult, label: str, chi2: float) -> FitResult:
     how = f"chi2 {chi2:+.3g}" if math.isfinite(chi2) else "no fit"
     treatment = dataclasses.replace(t0, selected=(*t0.selected, f"{label}: not better ({how})"))
     return dataclasses.replace(incumbent, treatment=treatment)
+
+
+def with_exposure(result: FitResult, call: dict, fit, rounding: float) -> tuple[FitResult, dict]:
+    """The fit with a gain and an offset per photo where the photo needs them, and the call that
+    made it (`fit`: `fit_lens`'s single-treatment fit).
+
+    **The rule.** At the fit without them, the score (Lagrange multiplier) statistic of the gain
+    and offset columns (`solve.exposure_score`, chi-square with `2 T` degrees of freedom when
+    the photo has no exposure error; no refit needed) is tested at level `SELECT_ALPHA`; where it
+    rejects, the fit is solved again with them, from the lens found (or the caller's starts where
+    that fit did not succeed). A score test keeps the default fit's cost where the photo needs
+    nothing (Rao 1948, Buse 1982)."""
+    entry = dict((result.nuisances or {}).get("exposure", {}))
+    # A fit down to the float rounding (a render of the photo's own lens) leaves nothing for a
+    # gain to explain, and its residual is the rounding, which is proportional to the values,
+    # so along the gain column: no test there (the floor of `prefers`).
+    exact = float(np.asarray(result.sigma)) < rounding
+    p_value = entry.get("p_value", math.nan)
+    if _status(result) == "other" or exact or not (p_value < SELECT_ALPHA):
+        entry.update(forced=False, chosen=False, exact=exact)
+        return dataclasses.replace(result, nuisances={"exposure": entry}), call
+    call = {**call, "exposure": True}
+    try:
+        refit = fit(**_from(result, {**call, **_as_chosen(result, call)}))
+    except ValueError:
+        entry.update(forced=False, chosen=False)
+        return dataclasses.replace(result, nuisances={"exposure": entry}), {
+            **call,
+            "exposure": False,
+        }
+    entry.update(fitted=True, forced=False, chosen=True)
+    t0, t1 = result.treatment, refit.treatment
+    assert t0 is not None and t1 is not None
+    treatment = dataclasses.replace(t1, forced=t0.forced, selected=t0.selected)
+    return dataclasses.replace(refit, nuisances={"exposure": entry}, treatment=treatment), call
+
+
+def forced_exposure(result: FitResult, on: bool) -> dict:
+    """`FitResult.nuisances` of a fit whose exposure the caller set."""
+    entry = dict((result.nuisances or {}).get("exposure", {}))
+    entry.update(fitted=on, forced=True, chosen=False)
+    return {"exposure": entry}
+
+
+def _from(result: FitResult, call: dict) -> dict:
+    """`call` started from `result`'s lens with one start where `result` succeeded."""
+    if _status(result) != "successful":
+        return call
+    return {**call, "init": result.lenses, "starts": 1, "pyramid": None}
 
 
 def _status(result: FitResult) -> str:

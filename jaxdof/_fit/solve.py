@@ -327,8 +327,38 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
         condition=stats["condition"],
         sigma=stats["sigma"],
         variance=stats["variance"],
+        exposure_score=exposure_score(residual, jac, args, spec),
     )
     return result, info
+
+
+def exposure_score(residual, jac, args, spec: _Spec) -> Array:
+    r"""The score (Lagrange multiplier) statistic for a gain and an offset per target at a fit
+    without them: `LM = ||P_X r||^2 / sigma^2`, `P_X` the projection onto the columns of the
+    lens Jacobian and the nuisance columns (`d r / d g_t = sqrt(w) model_t`, `d r / d o_t =
+    sqrt(w)` on target `t`'s pixels), `sigma^2 = ||r||^2 / (n - p)`. Under a model without
+    exposure error it is chi-square with `2 T` degrees of freedom (Rao 1948; Buse 1982, "The
+    likelihood ratio, Wald, and Lagrange multiplier tests"), and it needs no refit. `0` when the
+    fit already has them (`spec.exposure`)."""
+    if spec.exposure:
+        return jnp.zeros((), residual.dtype)
+    _, _, targets, sqrt_w, _ = args
+    shape = targets.shape
+    sw = jnp.broadcast_to(sqrt_w, shape).astype(residual.dtype)
+    pred = residual.reshape(shape) + sw * targets  # sqrt(w) * model
+    t = shape[0]
+    which = jnp.arange(t).reshape((t,) + (1,) * (len(shape) - 1))
+    extra = [jnp.where(which == i, x, 0).reshape(-1) for i in range(t) for x in (pred, sw)]
+    x = jnp.concatenate([jac[:, jnp.asarray(spec.used)], jnp.stack(extra, axis=1)], axis=1)
+    r = residual.astype(x.dtype)
+    # Scaled columns: a gain column is O(1), an offset O(1), a lens column anything.
+    norms = jnp.sqrt(jnp.sum(jnp.square(x), axis=0))
+    xs = x / jnp.where(norms > 0, norms, 1)
+    beta = jnp.linalg.lstsq(xs, r)[0]
+    fitted = xs @ beta
+    n = jnp.sum(sw > 0).astype(r.dtype)
+    sigma2 = (r @ r) / jnp.maximum(n - len(spec.used), 1)
+    return ((fitted @ fitted) / jnp.maximum(sigma2, jnp.finfo(r.dtype).tiny)).astype(residual.dtype)
 
 
 @eqx.filter_jit
