@@ -42,17 +42,19 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03, slope: float = EDGE_SLO
 
     - large: `|D| > jump min(d_p, d_q)` (3 % by default), and
     - a jump, which neither surface beside it continues into, in depth and in inverse depth
-      alike: for `v = d` and for `v = 1/d`, with `s_l = v_{p-1} - v_{p-2}` and
-      `s_r = v_{q+2} - v_{q+1}` the steps of the surfaces two pixels out on either side (beyond
-      the frame the pair's own: within two pixels of the frame's edge nothing is an edge, and
-      a fit leaves that band out anyway), `|D_v - s_l|` and `|D_v - s_r|` both exceed
-      `slope max(|s_l|, |s_r|)` (`slope` 2 by default).
+      alike: for `v = d` and for `v = 1/d`, with `s_l` and `s_r` the steps of the surfaces on
+      either side (each the smaller of the steps one and two pixels out: `v_p - v_{p-1}`,
+      `v_{p-1} - v_{p-2}` on the left; beyond the frame the pair's own, so that within two
+      pixels of the frame's edge, which a fit leaves out anyway, nothing is an edge),
+      `|D_v - s_l|` and `|D_v - s_r|` both exceed `slope max(|s_l|, |s_r|)` (`slope` 2 by
+      default).
 
     A plane, however steep (a floor at a grazing angle, up to its horizon), is linear in inverse
     depth, a synthetic ramp in depth: either continues into the pair from both sides; where two
     surfaces meet (a floor and a wall) the crease continues one of them: none of these is an
     edge. An occlusion boundary continues neither, also when the depth map spreads it over two
-    pixels (antialiased or upsampled: the steps two out are the surfaces'). Infinite depths
+    pixels (antialiased or upsampled) and around a structure one or two pixels wide (a pole, a
+    branch): one of the steps one and two out is the surface's. Infinite depths
     (sky) count as far. A jump on a surface that itself changes depth several times over within
     a few pixels can be missed (1 to 6 m over 8 px, a jump from 3.1 to 8.2 m).
     """
@@ -79,12 +81,26 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03, slope: float = EDGE_SLO
 
 
 def _uncontinued(step: np.ndarray, slope: float) -> np.ndarray:
-    """Whether each step `(n - 1, ...)` (the pair `(i, i + 1)`) differs from both the step two out
-    on its left, `step[i - 2]`, and on its right, `step[i + 2]`, by more than `slope` times the
-    larger of them (beyond the frame the step itself: no evidence of a jump)."""
+    """Whether each step `(n - 1, ...)` (the pair `(i, i + 1)`) differs from the surface's step on
+    its left and on its right by more than `slope` times the larger of them. A side's step is the
+    smaller (in magnitude) of the steps one and two out, `step[i - 1]`, `step[i - 2]` (right:
+    `i + 1`, `i + 2`), so that the far side of a structure one or two pixels wide, or the second
+    half of a jump spread over two pixels, does not count as the surface; beyond the frame the
+    pair's own step stands in (no evidence of a jump)."""
     flat = np.nan_to_num(step, nan=0.0, posinf=np.inf, neginf=-np.inf)
-    s_l, s_r = flat.copy(), flat.copy()
-    s_l[2:], s_r[:-2] = flat[:-2], flat[2:]
+
+    def shifted(k: int) -> np.ndarray:  # step[i + k], the pair's own beyond the frame
+        out = flat.copy()
+        if k > 0:
+            out[:-k] = flat[k:]
+        else:
+            out[-k:] = flat[:k]
+        return out
+
+    def side(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.where(np.abs(a) <= np.abs(b), a, b)
+
+    s_l, s_r = side(shifted(-1), shifted(-2)), side(shifted(1), shifted(2))
     tol = slope * np.maximum(np.abs(s_l), np.abs(s_r))
     return (np.abs(flat - s_l) > tol) & (np.abs(flat - s_r) > tol)
 

@@ -9,8 +9,9 @@ import jaxdof
 
 # The model the synthetic targets here are rendered with (`jaxdof.render`'s default): these tests
 # check the solve, so they fit exactly that model instead of the treatment `fit_lens` would choose
-# for a real photo (occlusion, edge weight, footprint; tests/test_treatment.py).
-EXACT = dict(method="soft", footprint=False, edge_weight=False)
+# for a real photo (occlusion, edge weight, footprint; tests/test_treatment.py), and no nuisance
+# the photo might ask for (exposure; tests/test_nuisances.py).
+EXACT = dict(method="soft", footprint=False, edge_weight=False, exposure=False)
 
 
 def overlap_by_integration(dx: float, dy: float, r: float) -> float:

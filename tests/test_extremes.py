@@ -198,7 +198,10 @@ def test_concrete_invalid_depth_raises(bad):
     for fn in (coc_radius, signed_coc_radius):
         with pytest.raises(ValueError, match="beyond the focal length"):
             fn(depth, LENS)
-    with pytest.raises(ValueError, match="beyond the focal length"):
+    # `render` names a hole (no data: NaN, 0, negative) as such, with the option that fills it
+    hole = bad in ("nan", "negative", "zero", "minus_inf")
+    match = "holes .NaN, 0 or negative: no data.; pass fill_holes=True" if hole else "beyond the"
+    with pytest.raises(ValueError, match=match):
         render(np.ones((3, 4)), depth, LENS)
 
 

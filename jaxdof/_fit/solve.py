@@ -353,7 +353,7 @@ def exposure_score(residual, jac, args, spec: _Spec) -> Array:
     r = residual.astype(x.dtype)
     # Scaled columns: a gain column is O(1), an offset O(1), a lens column anything.
     norms = jnp.sqrt(jnp.sum(jnp.square(x), axis=0))
-    xs = x / jnp.where(norms > 0, norms, 1)
+    xs = x / jnp.where(norms > 0, norms, 1)[None, :]
     beta = jnp.linalg.lstsq(xs, r)[0]
     fitted = xs @ beta
     n = jnp.sum(sw > 0).astype(r.dtype)
