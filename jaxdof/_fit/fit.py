@@ -918,30 +918,10 @@ def fit_lens(
 
 
 def _fit_treated(
-    image: ArrayLike,
-    depth: ArrayLike,
-    targets: ArrayLike | Sequence[ArrayLike],
-    init: ThinLens | Sequence[ThinLens],
-    *,
-    free: Sequence[str] = ("focus_distance", "f_number"),
-    shared: Sequence[str] = (),
-    solver: optx.AbstractLeastSquaresSolver | None = None,
-    max_steps: int = 100,
-    weight: ArrayLike | None = None,
-    max_radius: float | None = None,
-    allow_degenerate: bool = False,
-    exposure: bool = False,
-    starts: int | None = None,
-    verbose: bool | Callable[..., None] = False,
-    model: AbstractForwardModel | None = None,
-    method: str | AbstractMethod | None = None,
-    footprint: bool | None = None,
-    pyramid: int | None = None,
-    downsample: int | None = None,
-    border: bool | str | int = "auto",
-    tiles: str | int | bool | None = "auto",
-    edge_weight: bool | float | None = None,
-) -> FitResult:
+    image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
+    allow_degenerate, exposure: bool, starts, verbose, model, method, footprint, pyramid,
+    downsample, border, tiles, edge_weight,
+) -> FitResult:  # fmt: skip
     """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection."""
     given = dict(locals())  # the call, to refit on tiles chosen for a larger window
     forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)

@@ -135,6 +135,20 @@ def _statistics_at(residual, jac, g, theta, args, spec: _Spec) -> dict[str, Arra
     return _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
 
 
+def _exposure_columns(residual, args) -> tuple[Array, Array]:
+    """`sqrt(w)` at the targets' shape, and the derivatives of the residual with respect to a
+    gain and an offset per target, `(n, 2 T)`: `sqrt(w) model_t` and `sqrt(w)` on target `t`'s
+    pixels, 0 elsewhere."""
+    _, _, targets, sqrt_w, _ = args
+    shape = targets.shape
+    sw = jnp.broadcast_to(sqrt_w, shape).astype(residual.dtype)
+    pred = residual.reshape(shape) + sw * targets  # sqrt(w) * model
+    t = shape[0]
+    which = jnp.arange(t).reshape((t,) + (1,) * (len(shape) - 1))
+    extra = [jnp.where(which == i, x, 0).reshape(-1) for i in range(t) for x in (pred, sw)]
+    return sw, jnp.stack(extra, axis=1)
+
+
 def _check_model(residual, jac, args, spec: _Spec, band: int) -> dict[str, Array]:
     """The model-adequacy test (`adequacy.adequacy`) at the solution: tiles of the region inside
     the border `band`, every target and channel of a tile together; each tile may also have its
@@ -143,18 +157,14 @@ def _check_model(residual, jac, args, spec: _Spec, band: int) -> dict[str, Array
     targets' rounding level."""
     _, _, targets, sqrt_w, _ = args
     shape = targets.shape
-    sw = jnp.broadcast_to(sqrt_w, shape).astype(residual.dtype)
-    pred = residual.reshape(shape) + sw * targets  # sqrt(w) * model
-    t = shape[0]
-    which = jnp.arange(t).reshape((t,) + (1,) * (len(shape) - 1))
-    extra = [jnp.where(which == i, x, 0).reshape(-1) for i in range(t) for x in (pred, sw)]
+    sw, extra = _exposure_columns(residual, args)
     return adequacy(
         residual,
         jac,
         shape,
         sw > 0,
         used=spec.used,
-        extra=jnp.stack(extra, axis=1),
+        extra=extra,
         band=band,
         noise_floor=rounding_noise(sw * targets, sw > 0),
     )
@@ -342,14 +352,8 @@ def exposure_score(residual, jac, args, spec: _Spec) -> Array:
     fit already has them (`spec.exposure`)."""
     if spec.exposure:
         return jnp.zeros((), residual.dtype)
-    _, _, targets, sqrt_w, _ = args
-    shape = targets.shape
-    sw = jnp.broadcast_to(sqrt_w, shape).astype(residual.dtype)
-    pred = residual.reshape(shape) + sw * targets  # sqrt(w) * model
-    t = shape[0]
-    which = jnp.arange(t).reshape((t,) + (1,) * (len(shape) - 1))
-    extra = [jnp.where(which == i, x, 0).reshape(-1) for i in range(t) for x in (pred, sw)]
-    x = jnp.concatenate([jac[:, jnp.asarray(spec.used)], jnp.stack(extra, axis=1)], axis=1)
+    sw, extra = _exposure_columns(residual, args)
+    x = jnp.concatenate([jac[:, jnp.asarray(spec.used)], extra], axis=1)
     r = residual.astype(x.dtype)
     # Scaled columns: a gain column is O(1), an offset O(1), a lens column anything.
     norms = jnp.sqrt(jnp.sum(jnp.square(x), axis=0))
