@@ -117,11 +117,13 @@ def test_every_method_in_bands(method, sensor_width):
 
 
 def _auto_both(lens, band_rows):
-    """`render(method="auto")` renders this scene (a depth edge at every pixel) with
-    `LocalOcclusion` on the whole frame, which bands cannot (`test_treatment`), so in bands it
-    renders the filter-level `Auto` with the footprint correction: the whole frame's pixels of
-    that are `_filter`'s, the whole-frame render after the scene's choice."""
+    """`render(method="auto")` renders this scene (the smooth depth in terraces: a depth edge
+    every few pixels) with `LocalOcclusion` on the whole frame, which bands cannot
+    (`test_treatment`), so in bands it renders the filter-level `Auto` with the footprint
+    correction: the whole frame's pixels of that are `_filter`'s, the whole-frame render after
+    the scene's choice."""
     image, depth = _scene()
+    depth = np.round(depth * 2) / 2  # terraces half a metre apart (a smooth depth has no edge)
     t = jaxdof.scene_treatment(depth, lens)
     assert t.occlusion and t.footprint
     radius = _circles(jnp.asarray(image), jnp.asarray(depth), lens, 1)

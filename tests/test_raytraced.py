@@ -224,6 +224,7 @@ def covered(res, truth):
     z = [
         abs(float(getattr(res.lens, k)) - float(getattr(truth, k))) / float(res.stderr[k])
         for k in res.stderr
+        if k in jaxdof.ThinLens.__dataclass_fields__  # not the gain and offset, if fitted
     ]
     return max(z) <= 3, z
 

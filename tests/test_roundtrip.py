@@ -71,7 +71,7 @@ def _errors(fit, truth, depth):
     return e_n, e_u
 
 
-def _round_trip(model: str, kind: str, n: float, d_f: float, dtype, shape=(40, 56)):
+def _round_trip(model: str, kind: str, n: float, d_f: float, dtype, shape=(40, 56), tol=TOL):
     image, depth = _scene(kind, *shape, dtype)
     truth = _lens(n, d_f, shape[1])
     photo = jaxdof.render(image, depth, truth, **MODELS[model])
@@ -80,7 +80,7 @@ def _round_trip(model: str, kind: str, n: float, d_f: float, dtype, shape=(40, 5
     e_n, e_u = _errors(fit, truth, depth)
     label = f"{model} {kind} N={n:.3g} d_f={d_f:.3g}: {fit.message} | {fit.treatment}"
     assert bool(fit.success), label
-    assert abs(e_n) < TOL and abs(e_u) < TOL, f"{label}: N {e_n:+.2e}, power {e_u:+.2e}"
+    assert abs(e_n) < tol and abs(e_u) < tol, f"{label}: N {e_n:+.2e}, power {e_u:+.2e}"
     return fit
 
 
@@ -109,8 +109,12 @@ def test_default_fit_recovers_every_render(model, kind, n, d_f, dtype):
 def test_default_fit_recovers_every_render_wide(model, kind, n, d_f):
     """Circles from under a pixel (f/16 at 4-6 m) to about 30 px (f/1 at infinity on a 4.8 mm
     sensor of 96 px), focus at infinity included, on a frame that leaves pixels inside the
-    border band."""
-    _round_trip(model, kind, n, d_f, np.float32, shape=(96, 128))
+    border band. The fit renders occlusion as `LocalOcclusion` (per pair of pixels); the global
+    layers of `Occlusion` differ from it within a circle of the edges, which with circles of
+    tens of pixels moves the lens by up to 1e-3 (9e-4 in N at f/1.5 focused at infinity): its
+    renders are held to 1e-3 here, every other model to 1e-4."""
+    tol = 1e-3 if model == "occlusion" else TOL
+    _round_trip(model, kind, n, d_f, np.float32, shape=(96, 128), tol=tol)
 
 
 def test_default_fit_recovers_a_rendered_bracket():
