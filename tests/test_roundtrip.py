@@ -99,7 +99,7 @@ def test_default_fit_recovers_every_render(model, kind, n, d_f, dtype):
     _round_trip(model, kind, n, d_f, dtype)
 
 
-@_settings(10)
+@_settings(6)
 @given(
     model=st.sampled_from(sorted(MODELS)),
     kind=st.sampled_from(["ramp", "step"]),

@@ -22,8 +22,8 @@ rounding, the photo cannot tell them apart and the scene's choice stays. With eq
 comparing the losses; the margin keeps the scene's choice where the photo cannot tell the two
 apart (then their lenses agree to within their errors anyway), so a wrong switch needs the noise
 to favour the wrong model by `sqrt(SELECT_CHI2)` standard deviations of the difference.
-The footprint is tried first, then the occlusion render (off where the scene chose it, on where
-the depth map has edges that the starting lens's circles did not make matter); the result says
+The occlusion render is tried first (off where the scene chose it, on where the depth map has
+edges that the starting lens's circles did not make matter), then the footprint; the result says
 what was tried and what the photo chose (`Treatment.selected`).
 """
 
@@ -52,21 +52,24 @@ _COMPARABLE = ("successful", "inconsistent", "ambiguous", "window")
 def alternatives(result: FitResult, call: dict) -> list[tuple[str, dict]]:
     """The other treatments to try after `result` (the scene's), as `(label, changes to the
     call)`, each only where the caller did not force that choice, and only for the default
-    forward model: the footprint correction off where the scene chose it; the occlusion render
-    off where the scene chose it, or on where the depth map has edges the starting lens did not
-    make matter (the photo's lens may: the scene's rule at the start is not its rule at the
+    forward model: the occlusion render off where the scene chose it, or on where the depth map
+    has edges the starting lens did not make matter; then the footprint correction off where the
+    scene chose it (the photo's lens may: the scene's rule at the start is not its rule at the
     truth)."""
     t = result.treatment
     if t is None or call.get("model") is not None or _status(result) not in _COMPARABLE:
         return []
+    # The occlusion render first: where it is wrong its error is the larger, and it would
+    # muddle the footprint's comparison (a soft render with the footprint correction, circles
+    # of 30 px: with occlusion still on, the fit without the footprint won by chi2 11.5).
     out = []
-    if t.footprint and call.get("footprint") is None:
-        out.append(("footprint off", {"footprint": False}))
     if call.get("method") is None:
         if t.occlusion:
             out.append(("occlusion off", {"method": "soft"}))
         elif depth_edges(np.asarray(call["depth"])).any():
             out.append(("occlusion on", {"method": OCCLUSION_METHOD}))
+    if t.footprint and call.get("footprint") is None:
+        out.append(("footprint off", {"footprint": False}))
     return out
 
 
