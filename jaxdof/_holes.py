@@ -45,14 +45,18 @@ def fill_depth_holes(depth: ArrayLike) -> np.ndarray:
     depth of the surface it touches). A fit does not depend on the filled values: it leaves out
     every photo pixel a hole's light reaches.
     """
-    d = np.array(depth, copy=True)
+    d = np.asarray(depth)
     if d.ndim != 2:
         raise ValueError(f"depth must be an (H, W) map, got shape {d.shape}")
     holes = depth_holes(d)
-    if not holes.any():
-        return d
+    return filled(d, holes) if holes.any() else d.copy()
+
+
+def filled(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
+    """`fill_depth_holes` for a map whose holes `depth_holes` already found (a copy)."""
     if holes.all():
         raise ValueError("depth has no data: every pixel is NaN, 0 or negative")
+    d = np.array(depth, copy=True)
     found = ndimage.distance_transform_edt(holes, return_distances=False, return_indices=True)
     rows, cols = np.asarray(found)
     d[holes] = d[rows[holes], cols[holes]]

@@ -29,7 +29,7 @@ from ._filters import (
     coc_filter,
 )
 from ._filters.common import check_max_radius, is_concrete
-from ._holes import depth_holes, fill_depth_holes
+from ._holes import depth_holes, filled
 from ._lens import ThinLens, _check_depth, _error_if_invalid, coc_radius
 from ._scene import OCCLUSION_METHOD, scene_treatment
 
@@ -184,8 +184,8 @@ def _holes_filled(depth, fill_holes: bool):
             f"depth has {int(holes.sum())} holes (NaN, 0 or negative: no data); pass "
             "fill_holes=True to fill each from its nearest pixel (jaxdof render --fill-holes)"
         )
-    filled = fill_depth_holes(np.asarray(depth))
-    return filled if isinstance(depth, np.ndarray) else jnp.asarray(filled)
+    out = filled(np.asarray(depth), holes)
+    return out if isinstance(depth, np.ndarray) else jnp.asarray(out)
 
 
 def _scene_choice(method, depth, lens: ThinLens, s: int, footprint, bands: bool):

@@ -67,7 +67,8 @@ class Treatment:
     - `depth_holes`: image pixels without a depth (NaN, 0, negative; filled for the render) and
       `hole_pixels`: the photo pixels within a circle's reach of them, left out of the fit.
     - `selected`: what the photo said of the scene's choices (a fit's only; `jaxdof/_fit/select.py`):
-      e.g. `"footprint off (chi2 812)"` where the fit without it explains the photo better.
+      e.g. `"footprint off: better by chi2 812"` where the fit without it explains the photo
+      better, `"occlusion off: not better (chi2 -62)"` where it does not.
     """
 
     method: str = "soft"

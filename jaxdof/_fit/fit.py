@@ -835,9 +835,10 @@ def fit_lens(
     (width: the largest starting circle on those edges plus a pixel; dropped where it would leave
     under 30 % of the weight); where the starting lens's median circle is under 40 px, the
     footprint correction; and always the border. Then the photo has its say
-    (`jaxdof/_fit/select.py`): each of those choices is dropped in turn, the fit without it
-    solved from the lens found, and kept only unless the simpler model lowers the chi-square by
-    more than 10 on the same pixels. So a photo made by `jaxdof.render` with any of its models
+    (`jaxdof/_fit/select.py`): each choice is changed in turn (the occlusion render off, or on
+    where the depth has edges the start's circles did not make matter; then the footprint
+    correction off), solved from the lens found, and the change kept only where it lowers the
+    chi-square by more than 10 on the same pixels. So a photo made by `jaxdof.render` with any of its models
     (its default, the plain `soft` scatter, included) comes back as its lens, and a camera's
     photo keeps what it needs. `method`, `footprint` and `edge_weight` force a choice (no
     selection on it); `FitResult.treatment` reports every choice, which were forced and what the
@@ -911,7 +912,7 @@ def fit_lens(
     if exposure is None:
         # ... and in the exposure: a gain and an offset per photo where a score test at the fit
         # without them rejects it (`select.with_exposure`).
-        result, call = with_exposure(result, call, _fit_treated, rounding)
+        result = with_exposure(result, call, _fit_treated, rounding)
     else:
         result = dataclasses.replace(result, nuisances=forced_exposure(result, bool(exposure)))
     return result

@@ -99,7 +99,7 @@ class BoundedDampedNewtonDescent(optx.DampedNewtonDescent):
         if math.isinf(self.max_step):
             return y_diff, result
         size = jnp.max(jnp.abs(y_diff))
-        return y_diff * jnp.minimum(1, self.max_step / jnp.maximum(size, self.max_step)), result
+        return y_diff * (self.max_step / jnp.maximum(size, self.max_step)), result
 
 
 def bounded(solver: optx.AbstractLeastSquaresSolver) -> optx.AbstractLeastSquaresSolver:

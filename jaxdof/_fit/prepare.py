@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._filters.common import is_concrete
-from .._holes import depth_holes, fill_depth_holes, near_holes
+from .._holes import depth_holes, filled, near_holes
 from .._lens import ThinLens
 from .forward import AbstractForwardModel, DefocusModel
 from .layout import ALL_FIELDS, LENS_FIELDS, _Arr, _Layout, _Spec
@@ -153,7 +153,7 @@ def prepare_problem(
     # pixels their light reaches leave the residual once the window is known (`leave_out_holes`).
     holes = depth_holes(depth) if np.ndim(depth) == 2 else None
     if holes is not None and holes.any():
-        depth = fill_depth_holes(depth)
+        depth = filled(np.asarray(depth), holes)
     else:
         holes = None
     # Checks and set-up in numpy on the host: two compiled calls per fit (`fit_starts`, `finish`)

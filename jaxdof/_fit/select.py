@@ -53,9 +53,9 @@ def alternatives(result: FitResult, call: dict) -> list[tuple[str, dict]]:
     """The other treatments to try after `result` (the scene's), as `(label, changes to the
     call)`, each only where the caller did not force that choice, and only for the default
     forward model: the occlusion render off where the scene chose it, or on where the depth map
-    has edges the starting lens did not make matter; then the footprint correction off where the
-    scene chose it (the photo's lens may: the scene's rule at the start is not its rule at the
-    truth)."""
+    has edges the starting lens did not make matter (the photo's lens may: the scene's rule at
+    the start is not its rule at the truth); then the footprint correction off where the scene
+    chose it."""
     t = result.treatment
     if t is None or call.get("model") is not None or _status(result) not in _COMPARABLE:
         return []
@@ -120,12 +120,12 @@ def rounding_sigma(targets, dtype) -> float:
     """The residual standard deviation that float rounding alone leaves on photos `targets`:
     `16 eps rms(T)` (a float32 render of the true lens matches its own photo to about
     `0.7 eps rms(T)`; the margin covers the longer sums of the occlusion renders)."""
-    t = (
-        np.asarray(targets, np.float64)
-        if not isinstance(targets, (list, tuple))
-        else np.stack([np.asarray(x, np.float64) for x in targets])
-    )
-    return 16 * float(np.finfo(dtype).eps) * float(np.sqrt(np.mean(np.square(t))))
+    # Per photo and without a float64 copy (a 24 MP photo is 600 MB in float64); one digit is
+    # all a floor needs.
+    photos = targets if isinstance(targets, (list, tuple)) else [targets]
+    flat = [np.ravel(np.asarray(x)) for x in photos]
+    total = sum(float(np.vdot(x, x)) for x in flat)
+    return 16 * float(np.finfo(dtype).eps) * math.sqrt(total / sum(x.size for x in flat))
 
 
 def selected(alt: FitResult, incumbent: FitResult, label: str, chi2: float) -> FitResult:
@@ -134,13 +134,12 @@ def selected(alt: FitResult, incumbent: FitResult, label: str, chi2: float) -> F
     carried over."""
     t_alt, t0 = alt.treatment, incumbent.treatment
     assert t_alt is not None and t0 is not None
-    forced = tuple(f for f in t0.forced)
     treatment = dataclasses.replace(
         t_alt,
         edge_pixels=t0.edge_pixels,
         edge_share=t0.edge_share,
         median_circle=t0.median_circle,
-        forced=forced,
+        forced=t0.forced,
         selected=(*t0.selected, f"{label}: better by chi2 {chi2:.3g}"),
     )
     out = dataclasses.replace(alt, treatment=treatment, levels=incumbent.levels)
@@ -161,9 +160,9 @@ def kept(incumbent: FitResult, label: str, chi2: float) -> FitResult:
     return dataclasses.replace(incumbent, treatment=treatment)
 
 
-def with_exposure(result: FitResult, call: dict, fit, rounding: float) -> tuple[FitResult, dict]:
-    """The fit with a gain and an offset per photo where the photo needs them, and the call that
-    made it (`fit`: `fit_lens`'s single-treatment fit).
+def with_exposure(result: FitResult, call: dict, fit, rounding: float) -> FitResult:
+    """The fit with a gain and an offset per photo where the photo needs them (`fit`:
+    `fit_lens`'s single-treatment fit).
 
     **The rule.** At the fit without them, the score (Lagrange multiplier) statistic of the gain
     and offset columns (`solve.exposure_score`, chi-square with `2 T` degrees of freedom when
@@ -179,21 +178,17 @@ def with_exposure(result: FitResult, call: dict, fit, rounding: float) -> tuple[
     p_value = entry.get("p_value", math.nan)
     if _status(result) == "other" or exact or not (p_value < SELECT_ALPHA):
         entry.update(forced=False, chosen=False, exact=exact)
-        return dataclasses.replace(result, nuisances={"exposure": entry}), call
-    call = {**call, "exposure": True}
+        return dataclasses.replace(result, nuisances={"exposure": entry})
     try:
-        refit = fit(**_from(result, {**call, **_as_chosen(result, call)}))
+        refit = fit(**_from(result, {**call, **_as_chosen(result, call), "exposure": True}))
     except ValueError:
         entry.update(forced=False, chosen=False)
-        return dataclasses.replace(result, nuisances={"exposure": entry}), {
-            **call,
-            "exposure": False,
-        }
+        return dataclasses.replace(result, nuisances={"exposure": entry})
     entry.update(fitted=True, forced=False, chosen=True)
     t0, t1 = result.treatment, refit.treatment
     assert t0 is not None and t1 is not None
     treatment = dataclasses.replace(t1, forced=t0.forced, selected=t0.selected)
-    return dataclasses.replace(refit, nuisances={"exposure": entry}, treatment=treatment), call
+    return dataclasses.replace(refit, nuisances={"exposure": entry}, treatment=treatment)
 
 
 def forced_exposure(result: FitResult, on: bool) -> dict:
