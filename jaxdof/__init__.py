@@ -49,6 +49,7 @@ from ._raytrace import (
 )
 from ._render import render as render
 from ._scene import Treatment as Treatment, scene_treatment as scene_treatment
+from ._upsample import upsample_depth as upsample_depth
 
 
 try:

@@ -1,7 +1,8 @@
 """A photo's lens metadata (EXIF), read with Pillow: focal length, f-number, focus distance, pitch.
 
 Plain Python: no JAX, no pixels decoded (except a PNG whose eXIf chunk follows its image data,
-which Pillow reaches only by decoding). The command line starts `jaxdof fit` from these values and
+which Pillow reaches only by decoding, and a camera RAW file read through LibRaw, which rawpy
+unpacks before it gives the metadata). The command line starts `jaxdof fit` from these values and
 prints them with `jaxdof info`.
 
 **Where the tags are.** Cameras write the lens fields in the Exif sub-IFD (JPEG APP1, PNG eXIf,
@@ -20,6 +21,13 @@ read from its directory without opening the image.
   default when absent; 3 cm; 4 mm and 5 um as in TIFF/EP and DNG; 1 no unit) across the image's
   width, of the image `PixelXDimension` x `PixelYDimension` (0xA002, 0xA003) describes.
 
+**Camera RAW files** (`jaxdof._io.RAW_SUFFIXES`). Most are TIFF inside (DNG, NEF, CR2, ARW, PEF,
+SRW; ORF and RW2 under their own magic number): their tags are read as a TIFF's. When that gives
+neither a focal length nor an f-number (CR3 and RAF are not TIFF-structured), LibRaw's (through
+rawpy, the `raw` extra) are taken: the focal length, aperture and lens name it parses from the
+EXIF and the maker's notes. LibRaw gives no focus distance and no focal-plane resolution; a note
+says what came from it.
+
 A rational with a zero denominator, a value of the wrong type, or an implausible pixel pitch is
 left out with a note (`ExifLens.notes`), never guessed at.
 """
@@ -28,16 +36,22 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import mmap
 import os
 import warnings
 from collections.abc import Mapping
 from typing import Any
+
+from ._io import RAW_SUFFIXES, InputError, open_camera_raw
 
 
 _FULL_FRAME_DIAGONAL = math.hypot(0.036, 0.024)  # m: the 35 mm film frame, 36 x 24 mm
 _UNIT = {2: 0.0254, 3: 0.01, 4: 1e-3, 5: 1e-6}  # FocalPlaneResolutionUnit -> metres
 _PITCH_RANGE = (1e-7, 1e-4)  # m: 0.1 to 100 um; outside it a focal-plane resolution is bogus
 _INFINITY = 0xFFFFFFFF  # SubjectDistance numerator meaning infinity
+_TIFF = (b"II*\x00", b"MM\x00*")  # a classic TIFF's first four bytes
+# Raw formats built as a TIFF under their own first four bytes: Olympus ORF, Panasonic RW2.
+_TIFF_LIKE = (b"IIRO", b"IIRS", b"MMOR", b"IIU\x00")
 # The tags read, by Pillow's name (PIL.ExifTags.Base), in the order `source` lists them.
 _TAGS = (
     "Make",
@@ -73,8 +87,9 @@ class ExifLens:
       (`PixelXDimension`, `PixelYDimension`), which a resized copy may not have updated.
     - `make`, `model`, `lens_model`: the camera's and lens's names.
     - `source`: the raw tags read, by Pillow's tag name (`PIL.ExifTags.Base`): numbers (a
-      rational as a float, or `"n/0"` for a zero denominator) and strings. Empty: the file has
-      none of these tags.
+      rational as a float, or `"n/0"` for a zero denominator) and strings; from a camera RAW
+      file, also LibRaw's values as `"LibRaw focal_len"` (mm), `"LibRaw aperture"` and
+      `"LibRaw lens"` when they were used. Empty: the file has none of these tags.
     - `notes`: one line per tag left out (a zero denominator, a wrong type, an implausible value)
       and per warning Pillow gave while reading.
     """
@@ -136,7 +151,8 @@ class ExifLens:
 
 
 def read_exif(path: str | os.PathLike[str]) -> ExifLens:
-    """Read the lens fields of a photo's EXIF metadata (JPEG, TIFF, PNG eXIf, WebP) with Pillow.
+    """Read the lens fields of a photo's EXIF metadata (JPEG, TIFF, PNG eXIf, WebP, camera RAW)
+    with Pillow; from a RAW file without them, LibRaw's focal length and aperture.
 
     **Arguments:**
 
@@ -146,7 +162,7 @@ def read_exif(path: str | os.PathLike[str]) -> ExifLens:
     one with every field `None` and an empty `source`.
 
     **Raises:** `ValueError` naming the file and the problem when it does not exist, is not an
-    image Pillow can read, or its metadata cannot be parsed.
+    image Pillow (or, for a camera RAW file, LibRaw) can read, or its metadata cannot be parsed.
 
     The tags and their meaning are in the module's docstring (EXIF 2.32, CIPA DC-008-2019).
     """
@@ -155,17 +171,65 @@ def read_exif(path: str | os.PathLike[str]) -> ExifLens:
         raise ValueError(f"{name}: no such file")
     if os.path.isdir(name):
         raise ValueError(f"{name}: is a folder, not an image file")
+    raw = os.path.splitext(name)[1].lower() in RAW_SUFFIXES
+    tiff_error = None
     # Pillow warns on damaged tags ("Possibly corrupt EXIF data"): each becomes a note.
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
             ifd0, sub = _read_ifds(name)
-        except ValueError:
-            raise
         except Exception as err:  # Pillow raises many types; all mean "cannot parse"
-            raise ValueError(f"{name}: its metadata cannot be read ({_first_line(err)})") from None
+            tiff_error = (
+                err
+                if isinstance(err, ValueError)
+                else ValueError(f"{name}: its metadata cannot be read ({_first_line(err)})")
+            )
+            if not raw:
+                raise tiff_error from None
+            ifd0, sub = {}, {}
     notes = [f"{name}: {_first_line(w.message)}" for w in caught]
-    return _lens(name, ifd0, sub, notes)
+    lens = _lens(name, ifd0, sub, notes)
+    if raw and lens.focal_length is None and lens.f_number is None:
+        return _with_libraw(name, lens, tiff_error)
+    return lens
+
+
+def _with_libraw(name: str, lens: ExifLens, tiff_error: ValueError | None) -> ExifLens:
+    """`lens` with LibRaw's focal length, aperture and lens name where it has them, and a note.
+
+    `tiff_error`: why no TIFF tags could be read, if none could; a file LibRaw cannot read either
+    then raises `ValueError`, else the failure is a note.
+    """
+    try:
+        with open_camera_raw(name) as raw:
+            focal, aperture, model = raw.other.focal_length, raw.other.aperture, raw.lens.model
+    except InputError as err:
+        if tiff_error is not None:
+            raise ValueError(str(err)) from None
+        return dataclasses.replace(lens, notes=(*lens.notes, f"{err}; its lens fields left out"))
+    found = {  # 0: unknown
+        "LibRaw focal_len": float(focal) if focal > 0 else None,
+        "LibRaw aperture": float(aperture) if aperture > 0 else None,
+        "LibRaw lens": model.strip() or None,
+    }
+    found = {k: v for k, v in found.items() if v is not None}
+    notes = lens.notes
+    if tiff_error is not None:
+        notes += (
+            f"{name}: its metadata is not TIFF-structured: focal length, f-number and lens name "
+            "are read through LibRaw, which gives no focus distance or pixel pitch",
+        )
+    elif found:
+        notes += (f"{name}: its EXIF tags have no focal length or f-number; LibRaw's are used",)
+    focal_mm = found.get("LibRaw focal_len")
+    return dataclasses.replace(
+        lens,
+        focal_length=None if focal_mm is None else focal_mm / 1000,
+        f_number=found.get("LibRaw aperture"),
+        lens_model=lens.lens_model or found.get("LibRaw lens"),
+        source={**lens.source, **found},
+        notes=notes,
+    )
 
 
 def _first_line(err: object) -> str:
@@ -184,16 +248,24 @@ def _read_ifds(path: str) -> tuple[dict[int, Any], dict[int, Any]]:
     except UnidentifiedImageError:
         with open(path, "rb") as fh:
             head = fh.read(4)
-        if head not in (b"II*\x00", b"MM\x00*"):
+        if head not in _TIFF + _TIFF_LIKE:
             raise ValueError(
-                f"{path}: not an image whose metadata can be read (JPEG, TIFF, PNG or WebP)"
+                f"{path}: not an image whose metadata can be read (JPEG, TIFF, PNG, WebP or "
+                "TIFF-structured camera RAW)"
             ) from None
-    # A classic TIFF whose pixels Pillow cannot decode (float32 RGB): its tag directory is read
-    # as Pillow reads a TIFF's EXIF, without the image.
+    # A classic TIFF whose pixels Pillow cannot decode (float32 RGB, a DNG's mosaic): its tag
+    # directory is read as Pillow reads a TIFF's EXIF, without the image. A TIFF-like raw is read
+    # through a private copy-on-write mapping given the TIFF's first four bytes (the file is not
+    # changed, nor read whole).
     exif = Image.Exif()
     with open(path, "rb") as fh:
-        exif.load_from_fp(fh)
-        return dict(exif), dict(exif.get_ifd(ExifTags.IFD.Exif))
+        if head in _TIFF:
+            exif.load_from_fp(fh)
+            return dict(exif), dict(exif.get_ifd(ExifTags.IFD.Exif))
+        with mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_COPY) as view:
+            view[:4] = _TIFF[0] if head.startswith(b"II") else _TIFF[1]
+            exif.load_from_fp(view)  # pyright: ignore[reportArgumentType]
+            return dict(exif), dict(exif.get_ifd(ExifTags.IFD.Exif))
 
 
 def _is_number(value: Any) -> bool:

@@ -9,6 +9,12 @@ Everything here is plain numpy: no JAX. The command line (`jaxdof._cli`) reads f
   linear light (IEC 61966-2-1 transfer curve) before any filtering, because blur mixes light, not
   encoded values, and encoded back when written. `linear=True` takes their values as linear.
 - Float files (float TIFF, `.npy`, `.npz`) are linear already.
+- Camera RAW files (DNG and the vendors' formats LibRaw reads, `RAW_SUFFIXES`) are decoded by
+  LibRaw through rawpy (the `raw` extra) in linear light: the sensor's counts less the black
+  level, scaled so the white level is 1, the camera's as-shot white balance, converted to sRGB
+  (Rec. 709) primaries without the sRGB transfer curve, 16 bits per channel, the camera's
+  orientation applied (`read_camera_raw`). They are the best input for a fit: no tone curve and no
+  sharpening. `linear` does not apply to them.
 - Depth is z-depth along the optical axis in metres: float files as they are, integer files
   times a scale (metres per count), an OpenGL depth buffer through `jaxdof.linearize_depth`, or
   inverse depth (1/m).
@@ -27,17 +33,29 @@ TIFF or `.npy`, which are linear like EXR.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import struct
+import sys
 import tempfile
 import zlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
 
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr", ".npy", ".npz")
+# Camera RAW formats LibRaw decodes, the common ten first (error messages list those): Adobe DNG,
+# Canon, Nikon, Sony, Fujifilm, Olympus/OM, Panasonic, Pentax, Samsung; then older and rarer ones
+# (Canon CRW, Nikon NRW, Sony SRF/SR2, Leica RWL, Hasselblad, Phase One, Leaf, Mamiya, Kodak,
+# Sigma, Epson).
+RAW_SUFFIXES = (
+    ".dng", ".cr2", ".cr3", ".nef", ".arw", ".raf", ".orf", ".rw2", ".pef", ".srw",
+    ".crw", ".nrw", ".srf", ".sr2", ".rwl", ".3fr", ".fff", ".iiq", ".mos", ".mef", ".kdc",
+    ".dcr", ".x3f", ".erf",
+)  # fmt: skip
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr", ".npy", ".npz", *RAW_SUFFIXES)
 OUTPUT_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".npy", ".npz")
 # suffix -> (format name, imageio plugin, leading bytes of a valid file)
 _FORMATS = {
@@ -59,13 +77,15 @@ class InputError(Exception):
 class Loaded:
     """An array read from a file, with what is needed to write a result back alike.
 
-    `bits` is 8 or 16 for integer files and `None` for float files. `notes` are one-line remarks
-    for the user (e.g. a dropped alpha channel).
+    `bits` is 8 or 16 for integer files (16 for camera RAW files) and `None` for float files.
+    `notes` are one-line remarks for the user (e.g. a dropped alpha channel). `raw_decode`: for a
+    camera RAW file, what LibRaw read and how it decoded it (`read_camera_raw`); else `None`.
     """
 
     array: np.ndarray
     bits: int | None
     notes: list[str] = dataclasses.field(default_factory=list)
+    raw_decode: dict[str, Any] | None = None
 
 
 # ----------------------------------------------------------------------------------------------
@@ -163,8 +183,131 @@ def _read_png16_colour(path: str) -> np.ndarray:
     return (halves[0].astype(np.uint16) << 8) | halves[1].astype(np.uint16)
 
 
-def _read_raw(path: str, role: str, option: str) -> np.ndarray:
-    """Read a file as it is stored (integers stay integers). Errors name the file."""
+@contextlib.contextmanager
+def _collect_fd2(lines: list[str]) -> Iterator[None]:
+    """Collect in `lines` what is written to file descriptor 2 (standard error) meanwhile.
+
+    LibRaw reports damaged data ("Unexpected end of file") by printing it there from C, beside
+    its return codes. It is collected so that the user sees one line, ours.
+    """
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no standard error to redirect: nothing to collect
+        yield
+        return
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            sink.seek(0)
+            lines.extend(sink.read().decode("utf-8", "replace").splitlines())
+
+
+def _import_rawpy(path: str):
+    try:
+        import rawpy
+    except ImportError:
+        raise InputError(
+            f"{path}: reading camera RAW files needs rawpy: pip install rawpy (or pip install "
+            '"jaxdof[raw]")'
+        ) from None
+    return rawpy
+
+
+@contextlib.contextmanager
+def open_camera_raw(path: str, option: str | None = None) -> Iterator[Any]:
+    """`rawpy.imread(path)`, open for the `with` block; what fails in LibRaw becomes one
+    `InputError` naming the file: an unsupported or damaged file, and data errors LibRaw only
+    prints (what it prints about this file is collected and told in the message; anything else
+    written to standard error meanwhile, e.g. a progress line, is passed on afterwards).
+
+    **Raises:** `InputError` also when rawpy is not installed (`pip install "jaxdof[raw]"`).
+    """
+    rawpy = _import_rawpy(path)
+    lines: list[str] = []
+    failure = None
+    try:
+        with _collect_fd2(lines), rawpy.imread(path) as raw:
+            yield raw
+    except rawpy.LibRawError as err:
+        arg = err.args[0] if err.args else type(err).__name__
+        failure = arg.decode("utf-8", "replace") if isinstance(arg, bytes) else str(arg)
+    ours = [line for line in lines if line.startswith(f"{path}:")]
+    others = [line for line in lines if line not in ours]
+    if others:
+        sys.stderr.write("\n".join(others) + "\n")
+    if ours:  # what LibRaw printed says more than its return code ("Input/output error")
+        failure = ours[0][len(path) + 1 :].strip()
+    if failure is not None:
+        where = f" ({option})" if option else ""
+        raise InputError(f"{path}: not a readable camera RAW file (LibRaw: {failure}){where}")
+
+
+def read_camera_raw(path: str, *, option: str = "IMAGE") -> tuple[np.ndarray, dict[str, Any]]:
+    """Decode a camera RAW file with LibRaw (rawpy) to linear-light sRGB-primary RGB.
+
+    LibRaw subtracts the black level, scales the white level to 65535, applies the camera's
+    as-shot white balance (the daylight balance from the camera's colour matrix if the file
+    records none), demosaics, converts the camera's colours to sRGB (Rec. 709) primaries with
+    the file's colour matrix, and rotates the frame as the camera recorded it, with gamma 1 and
+    without auto-brightening: a count twice as far above black gives twice the value (until it
+    clips at the white level).
+
+    The demosaic is AHD (Hirakawa and Parks, "Adaptive homogeneity-directed demosaicing
+    algorithm", IEEE TIP 14(3), 2005; LibRaw's default, in every build): it interpolates along edges, where a
+    bilinear demosaic would soften every edge by about a pixel, blur the fit would take for
+    defocus. (AMaZE needs LibRaw's GPL demosaic pack, which rawpy's wheels leave out.)
+
+    **Returns:** `(rgb, facts)`: `uint16` `(H, W, 3)`, and what LibRaw read, JSON-ready:
+    `decoder`, `raw_size` (the stored `[width, height]`, margins included), `colours` (LibRaw's
+    colour letters, e.g. `"RGBG"`), `cfa` (the mosaic's repeating pattern by rows, e.g.
+    `"RG/GB"`; `None` for a sensor without one), `black_level` (per colour), `white_level`,
+    `white_balance` (the multipliers used, one per letter of `colours`) and
+    `white_balance_source` (`"as-shot"` or `"daylight"`), `demosaic`.
+
+    **Raises:** `InputError` naming the file when rawpy is missing or LibRaw cannot decode it.
+    """
+    rawpy = _import_rawpy(path)
+    with open_camera_raw(path, option) as raw:
+        colours = raw.color_desc.decode("ascii", "replace")
+        try:
+            pattern = raw.raw_pattern
+        except NotImplementedError:  # a layout rawpy does not describe (it still decodes)
+            pattern = None
+        as_shot = [float(x) for x in raw.camera_whitebalance]
+        shot = all(x > 0 for x in as_shot[:3])  # LibRaw falls back to daylight without it
+        balance = as_shot if shot else [float(x) for x in raw.daylight_whitebalance]
+        balance[3:] = [x or balance[1] for x in balance[3:]]  # a second green of 0: as the first
+        facts: dict[str, Any] = {
+            "decoder": f"LibRaw {'.'.join(map(str, rawpy.libraw_version))}",
+            "raw_size": [int(raw.sizes.raw_width), int(raw.sizes.raw_height)],
+            "colours": colours,
+            "cfa": None
+            if pattern is None or pattern.size < 4
+            else "/".join("".join(colours[i] for i in row) for row in pattern.tolist()),
+            "black_level": [int(x) for x in raw.black_level_per_channel],
+            "white_level": int(raw.white_level),
+            "white_balance": balance,
+            "white_balance_source": "as-shot" if shot else "daylight",
+            "demosaic": "AHD",
+        }
+        rgb = raw.postprocess(
+            demosaic_algorithm=rawpy.DemosaicAlgorithm.AHD,
+            use_camera_wb=True,
+            output_color=rawpy.ColorSpace.sRGB,
+            gamma=(1, 1),
+            no_auto_bright=True,
+            output_bps=16,
+        )
+    return np.ascontiguousarray(rgb), facts
+
+
+def _check_file(path: str, option: str) -> str:
+    """The file's suffix, after checking that it exists, is a file jaxdof reads, and is readable."""
     suffix = _suffix(path)
     if not os.path.exists(path):
         raise InputError(f"{path}: no such file ({option})")
@@ -173,10 +316,19 @@ def _read_raw(path: str, role: str, option: str) -> np.ndarray:
     if suffix not in IMAGE_SUFFIXES:
         raise InputError(
             f"{path}: unsupported format {suffix or '(no extension)'!r} ({option}); use one of "
-            + ", ".join(IMAGE_SUFFIXES)
+            + ", ".join(s for s in IMAGE_SUFFIXES if s not in RAW_SUFFIXES)
+            + f", or a camera RAW file ({', '.join(RAW_SUFFIXES[:10])}, ...)"
         )
     if not os.access(path, os.R_OK):
         raise InputError(f"{path}: cannot be read (permission denied) ({option})")
+    return suffix
+
+
+def _read_raw(path: str, role: str, option: str) -> np.ndarray:
+    """Read a file as it is stored (integers stay integers). Errors name the file."""
+    suffix = _check_file(path, option)
+    if suffix in RAW_SUFFIXES:  # read_image decodes them; nothing else reads them
+        raise InputError(f"{path}: a camera RAW file is a photo, not a {role} map ({option})")
     if suffix in (".npy", ".npz"):
         array = _read_npy(path, role)
     else:
@@ -223,8 +375,19 @@ def read_image(path: str, *, linear: bool = False, option: str = "IMAGE") -> Loa
     """Read an image as float32 linear light, `(H, W)` or `(H, W, C)` with `C` in {1, 3}.
 
     8/16-bit integers are scaled to `[0, 1]` and decoded from sRGB (unless `linear`); float files
-    are taken as linear. An alpha channel is dropped (noted in `Loaded.notes`).
+    are taken as linear. An alpha channel is dropped (noted in `Loaded.notes`). Camera RAW files
+    (`RAW_SUFFIXES`) are decoded in linear light by `read_camera_raw`, whatever `linear` says.
     """
+    if _suffix(path) in RAW_SUFFIXES:
+        _check_file(path, option)
+        rgb, facts = read_camera_raw(path, option=option)
+        image = rgb.astype(np.float32)
+        image /= 65535
+        note = (
+            f"{path}: camera RAW read in linear light by {facts['decoder']} ({facts['demosaic']} "
+            f"demosaic, {facts['white_balance_source']} white balance, sRGB primaries)"
+        )
+        return Loaded(image, 16, [note], facts)
     raw = _read_raw(path, "image", option)
     notes = []
     if raw.ndim == 3:
@@ -255,6 +418,22 @@ def read_image(path: str, *, linear: bool = False, option: str = "IMAGE") -> Loa
             "unsigned integers or floats"
         )
     return Loaded(np.ascontiguousarray(image, dtype=np.float32), bits, notes)
+
+
+def chroma_subsampled(path: str) -> bool:
+    """Whether `path` is a JPEG whose colour (Cb, Cr) is stored at lower resolution than its luma
+    (4:2:0 or 4:2:2, what cameras and Pillow write by default), from its header (no decoding)."""
+    if _suffix(path) not in (".jpg", ".jpeg"):
+        return False
+    from PIL import Image, JpegImagePlugin
+
+    try:
+        with Image.open(path) as im:
+            return isinstance(im, JpegImagePlugin.JpegImageFile) and (
+                JpegImagePlugin.get_sampling(im) in (1, 2)
+            )
+    except Exception:  # unreadable: read_image has said so already
+        return False
 
 
 def read_depth(

@@ -66,6 +66,8 @@ class Treatment:
       the rest were chosen by the rules above.
     - `depth_holes`: image pixels without a depth (NaN, 0, negative; filled for the render) and
       `hole_pixels`: the photo pixels within a circle's reach of them, left out of the fit.
+    - `depth_upsampled`: the shape of a coarser depth map `fit_lens` upsampled to the image
+      (`jaxdof.upsample_depth`); `()` when it had the image's.
     - `selected`: what the photo said of the scene's choices (a fit's only; `jaxdof/_fit/select.py`):
       e.g. `"footprint off: better by chi2 812"` where the fit without it explains the photo
       better, `"occlusion off: not better (chi2 -62)"` where it does not.
@@ -83,6 +85,7 @@ class Treatment:
     selected: tuple[str, ...] = ()
     depth_holes: int = 0
     hole_pixels: int = 0
+    depth_upsampled: tuple[int, ...] = ()
 
     def __str__(self) -> str:
         parts = []
@@ -98,6 +101,9 @@ class Treatment:
                 f"{self.depth_holes} depth holes filled ({self.hole_pixels} photo px near them "
                 "left out)"
             )
+        if self.depth_upsampled:
+            h, w = self.depth_upsampled
+            parts.append(f"depth upsampled from {h}x{w}")
         text = ", ".join(parts)
         text = f"{text} (forced: {', '.join(self.forced)})" if self.forced else text
         return f"{text}; photo: {', '.join(self.selected)}" if self.selected else text

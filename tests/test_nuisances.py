@@ -1,6 +1,8 @@
-"""Nuisances chosen by the photo (`jaxdof/_fit/select.py`, issue 34): a gain and an offset per
-photo, fitted by default only where a score test at the fit without them rejects; reported in
-`FitResult.nuisances`; forced on or off by `exposure=`; their residual's gradients checked."""
+"""Nuisances chosen by the photo (`jaxdof/_fit/select.py`, `jaxdof/_fit/photo.py`, issue 34): a
+gain and an offset, a radial vignetting gain, a registration (shift and magnification) per photo,
+each fitted by default only where a score test at the fit without it rejects; reported in
+`FitResult.nuisances`; forced on or off; their residual's gradients checked. And the luma
+comparison of a camera JPEG, chosen from the photo's colour detail."""
 
 import jax
 import jax.numpy as jnp
@@ -9,8 +11,8 @@ import pytest
 from jax.test_util import check_grads
 
 import jaxdof
-from jaxdof._fit import layout, prepare, residual
-from jaxdof._fit.solve import exposure_score
+from jaxdof._fit import layout, photo, prepare, residual
+from jaxdof._fit.solve import nuisance_columns, score_statistic
 
 
 def _scene(h=40, w=56, seed=0):
@@ -65,7 +67,7 @@ def test_exposure_forced_off_and_on():
 
 
 def test_exposure_score_is_the_projection_on_the_nuisance_columns():
-    """`exposure_score` against its definition in float64: `||P_X r||^2 / sigma^2` with `X` the
+    """`score_statistic` of the exposure's columns against its definition in float64: `||P_X r||^2 / sigma^2` with `X` the
     lens Jacobian's columns and the gain and offset columns."""
     image, depth = (x.astype(np.float64) for x in _scene(16, 20))
     lens = _lens(2.8, 2.5, 20)
@@ -73,9 +75,9 @@ def test_exposure_score_is_the_projection_on_the_nuisance_columns():
     image, depth, targets, sqrt_w, base, _ = prepare._prepare(
         image, depth, target, lens, None, jaxdof.DefocusModel()
     )
-    spec = layout._Spec(("f_number", "focus_distance"), (), 1, False)
+    spec = layout._Spec(("f_number", "focus_distance"), (), 1)
     lay = spec.layout(base, depth)
-    model = residual._Model(1, 4.0, False, jaxdof.DefocusModel(), n_live=2)
+    model = residual._Model(1, 4.0, (), jaxdof.DefocusModel(), n_live=2)
     args = (image, depth, targets, sqrt_w, lay)
     y = model.pack(jnp.asarray(base), lay)
     r = np.asarray(model(y, args), np.float64)
@@ -84,7 +86,8 @@ def test_exposure_score_is_the_projection_on_the_nuisance_columns():
     x = np.concatenate([jac[:, list(spec.used)], pred[:, None], np.ones((r.size, 1))], axis=1)
     fitted = x @ np.linalg.lstsq(x, r, rcond=None)[0]
     want = (fitted @ fitted) / ((r @ r) / (r.size - len(spec.used)))
-    got = float(exposure_score(jnp.asarray(r), jnp.asarray(jac), args, spec))
+    extra = nuisance_columns(model, y, args)["exposure"]
+    got = float(score_statistic(jnp.asarray(r), jnp.asarray(jac), extra, args, spec)[0])
     np.testing.assert_allclose(got, want, rtol=1e-6)
 
 
@@ -97,10 +100,188 @@ def test_exposure_residual_gradients():
     image, depth, targets, sqrt_w, base, _ = prepare._prepare(
         image, depth, target, lens, None, jaxdof.DefocusModel()
     )
-    lay = layout._Spec(("f_number", "focus_distance"), (), 1, True).layout(base, depth)
-    model = residual._Model(1, 4.0, True, jaxdof.DefocusModel(), n_live=4)
+    lay = layout._Spec(("f_number", "focus_distance"), (), 1, ("exposure",)).layout(base, depth)
+    model = residual._Model(1, 4.0, ("exposure",), jaxdof.DefocusModel(), n_live=4)
     args = (image, depth, targets, sqrt_w, lay)
     off = np.asarray(base).copy()
     off[:, 1] *= 1.2
     y = model.pack(jnp.asarray(off), lay).at[-2:].set(jnp.asarray([0.95, 0.01]))
     check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"))
+
+
+# ---------------------------------------------------------------------------------------------
+# Vignetting, registration and the luma comparison.
+# ---------------------------------------------------------------------------------------------
+
+
+def _camera(clean, nuisances, **params):
+    """`clean` `(H, W[, C])` through `photo.camera` with the given parameters (the rest null)."""
+    t = {k: jnp.asarray([v], clean.dtype) for k, v in params.items()}
+    names = [n for k in nuisances for n in photo.NUISANCES[k]]
+    full = {n: t.get(n, jnp.full((1,), photo.NULL.get(n, 0.0), clean.dtype)) for n in names}
+    return np.asarray(photo.camera(jnp.asarray(clean)[None], full, nuisances, False))[0]
+
+
+def test_register_is_the_identity_at_null_and_shifts_band_limited_detail_exactly():
+    """At zero shift and magnification `register` returns the image unchanged; a shift of
+    0.4 px of a sinusoid at a quarter of the sampling rate comes out as the sinusoid shifted,
+    to 1 % of its amplitude (the Lanczos-3 kernel, away from the edges)."""
+    x = np.arange(64, dtype=np.float64)
+    img = np.sin(2 * np.pi * 0.25 * x)[None, :, None].repeat(8, 0)
+    same = np.asarray(photo.register(jnp.asarray(img), 0.0, 0.0, 0.0))
+    np.testing.assert_array_equal(same, img)
+    r = photo.half_diagonal(8, 64)
+    moved = np.asarray(photo.register(jnp.asarray(img), 0.4 / r, 0.0, 0.0))
+    want = np.sin(2 * np.pi * 0.25 * (x - 0.4))
+    np.testing.assert_allclose(moved[4, 8:-8, 0], want[8:-8], atol=0.01)
+
+
+def _noisy(clean, sigma, seed=1):
+    noise = np.random.default_rng(seed).normal(0, sigma * clean.mean(), clean.shape)
+    return (clean + noise).astype(np.float32)
+
+
+def test_registration_is_fitted_where_the_photo_is_shifted_and_magnified():
+    """A photo 0.7 px off and magnified 1 % (focus breathing), 0.5 % noise: the score test asks
+    for the registration, which comes back within 0.05 px and 0.1 %, and the lens within 1 %;
+    a photo in register fits without it."""
+    image, depth = _scene(48, 64)
+    clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5, 64)))
+    r = photo.half_diagonal(48, 64)
+    moved = _camera(clean, ("registration",), shift_x=0.4 / r, shift_y=-0.6 / r, magnification=0.01)
+    fit = jaxdof.fit_lens(image, depth, _noisy(moved, 0.005), _lens(4.0, 2.0, 64))
+    entry = fit.nuisances["registration"]
+    assert entry["fitted"] and entry["chosen"] and entry["p_value"] < 1e-3, entry
+    assert bool(fit.success), fit.message
+    np.testing.assert_allclose(entry["values"]["shift_x"][0], 0.4, atol=0.05)
+    np.testing.assert_allclose(entry["values"]["shift_y"][0], -0.6, atol=0.05)
+    np.testing.assert_allclose(entry["values"]["magnification"][0], 0.01, atol=1e-3)
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
+    assert "shift_x" in fit.stderr and "registration: fitted" in fit.summary()
+    # The band grows by the registration's reach (0.7 px + 1 % of the half diagonal + 3 taps).
+    assert int(fit.border) >= 4
+    still = jaxdof.fit_lens(image, depth, _noisy(clean, 0.005), _lens(4.0, 2.0, 64))
+    assert not still.nuisances["registration"]["fitted"], still.nuisances
+
+
+def test_vignetting_is_fitted_where_the_corners_are_dark():
+    """A photo 25 % darker in the corners (`1 - 0.25 rho^2`), 0.5 % noise: the vignetting is
+    fitted, its `r^2` coefficient within 0.03 of -0.25, the lens within 1 %."""
+    image, depth = _scene(48, 64)
+    clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5, 64)))
+    dark = _camera(clean, ("vignetting",), vignetting_r2=-0.25)
+    fit = jaxdof.fit_lens(image, depth, _noisy(dark, 0.005), _lens(4.0, 2.0, 64))
+    entry = fit.nuisances["vignetting"]
+    assert entry["fitted"] and entry["chosen"], fit.nuisances
+    assert bool(fit.success), fit.message
+    v = entry["values"]
+    np.testing.assert_allclose(v["vignetting_r2"][0] + v["vignetting_r4"][0], -0.25, atol=0.03)
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
+
+
+def test_vignetting_and_registration_forced():
+    """`vignetting=False, registration=False` never fit them; `=True` always does (forced)."""
+    image, depth = _scene()
+    clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5)))
+    kw = dict(exposure=False)
+    off = jaxdof.fit_lens(
+        image, depth, clean, _lens(4.0, 2.0), vignetting=False, registration=False, **kw
+    )
+    assert not off.nuisances["vignetting"]["fitted"] and off.nuisances["vignetting"]["forced"]
+    on = jaxdof.fit_lens(
+        image, depth, clean, _lens(4.0, 2.0), vignetting=True, registration=True, **kw
+    )
+    for name in ("vignetting", "registration"):
+        assert on.nuisances[name]["fitted"] and on.nuisances[name]["forced"], on.nuisances
+    np.testing.assert_allclose(on.nuisances["registration"]["values"]["shift_x"][0], 0, atol=1e-3)
+    np.testing.assert_allclose(float(on.lenses.f_number[0]), 2.8, rtol=1e-3)
+    with pytest.raises(ValueError, match="registration must be None"):
+        jaxdof.fit_lens(image, depth, clean, _lens(4.0, 2.0), registration="yes")
+
+
+def test_nuisance_columns_are_the_derivatives_of_the_model_with_the_nuisance():
+    """`nuisance_columns` (the score test's columns, from one render) against the Jacobian of
+    the residual of a model that has the nuisances, at their null values, in float64."""
+    image, depth = (x.astype(np.float64) for x in _scene(12, 14))
+    lens = _lens(2.8, 2.5, 14)
+    target = 0.9 * np.asarray(jaxdof.render(image, depth, lens)) + 0.02
+    image, depth, targets, sqrt_w, base, _ = prepare._prepare(
+        image, depth, target, lens, None, jaxdof.DefocusModel()
+    )
+    free = ("f_number", "focus_distance")
+    args0 = (image, depth, targets, sqrt_w, layout._Spec(free, (), 1).layout(base, depth))
+    model0 = residual._Model(1, 4.0, (), jaxdof.DefocusModel(), n_live=2)
+    got = nuisance_columns(model0, model0.pack(jnp.asarray(base), args0[-1]), args0)
+    every = ("exposure", "vignetting", "registration")
+    spec = layout._Spec(free, (), 1, every)
+    lay = spec.layout(base, depth)
+    model = residual._Model(1, 4.0, every, jaxdof.DefocusModel(), n_live=len(spec.used))
+    y = model.pack(jnp.asarray(base), lay)
+    jac = np.asarray(jax.jacfwd(model)(y, (*args0[:4], lay)))
+    for k, name in enumerate(every):
+        first = 3 + sum(len(photo.NUISANCES[n]) for n in every[:k])
+        cols = list(range(first, first + len(photo.NUISANCES[name])))
+        np.testing.assert_allclose(np.asarray(got[name]), jac[:, cols], rtol=1e-9, atol=1e-12)
+
+
+def test_residual_gradients_with_every_nuisance_and_luma():
+    """The residual with exposure, vignetting, registration and the luma comparison: float64
+    finite differences of its derivatives in every coordinate, forward and reverse, away from
+    the null values (a shift of 0.3 px, 1 % magnification)."""
+    image, depth = (x.astype(np.float64) for x in _scene(12, 14))
+    lens = _lens(2.8, 2.5, 14)
+    target = 0.9 * np.asarray(jaxdof.render(image, depth, lens)) + 0.02
+    image, depth, targets, sqrt_w, base, _ = prepare._prepare(
+        image, depth, target, lens, None, jaxdof.DefocusModel()
+    )
+    targets, sqrt_w = prepare.luma_targets(targets, sqrt_w)
+    every = ("exposure", "vignetting", "registration")
+    spec = layout._Spec(("f_number", "focus_distance"), (), 1, every, luma=True)
+    lay = spec.layout(base, depth)
+    model = residual._Model(1, 4.0, every, jaxdof.DefocusModel(), len(spec.used), luma=True)
+    args = (image, depth, targets, sqrt_w, lay)
+    off = np.asarray(base).copy()
+    off[:, 1] *= 1.2
+    r = photo.half_diagonal(12, 14)
+    extra = jnp.asarray([0.95, 0.01, -0.1, 0.02, 0.3 / r, -0.2 / r, 0.01])
+    y = model.pack(jnp.asarray(off), lay).at[3:].set(extra)
+    check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"))
+
+
+def _jpeg(linear, subsampling):
+    """A linear RGB photo as a camera JPEG (quality 90) decoded back to linear light."""
+    import io
+
+    from PIL import Image
+
+    from jaxdof._io import linear_to_srgb, srgb_to_linear
+
+    code = np.round(np.clip(linear_to_srgb(np.clip(linear, 0, 1)), 0, 1) * 255).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(code).save(buf, "JPEG", quality=90, subsampling=subsampling)
+    buf.seek(0)
+    decoded = np.asarray(Image.open(buf)).astype(np.float64) / 255
+    return srgb_to_linear(decoded).astype(np.float32)
+
+
+def test_camera_jpeg_is_compared_in_luma():
+    """A 4:2:0 JPEG of a render: its colour detail is under `LUMA_CHROMA` of the image's, the
+    fit compares luma and recovers the lens within 2 %; the 4:4:4 JPEG and the linear render
+    keep the colour comparison; `luma=True` forces it."""
+    image, depth = _scene(48, 64)
+    clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5, 64)))
+    fit = jaxdof.fit_lens(image, depth, _jpeg(clean, 2), _lens(4.0, 2.0, 64))
+    entry = fit.nuisances["luma"]
+    assert entry["fitted"] and not entry["forced"], entry
+    assert entry["chroma_detail"] < 0.5
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.02)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.02)
+    assert "luma: compared in luma" in fit.summary()
+    for kept in (_jpeg(clean, 0), clean):
+        lens_fit = jaxdof.fit_lens(image, depth, kept, _lens(4.0, 2.0, 64), exposure=False)
+        assert not lens_fit.nuisances["luma"]["fitted"], lens_fit.nuisances["luma"]
+    forced = jaxdof.fit_lens(image, depth, clean, _lens(4.0, 2.0, 64), luma=True)
+    assert forced.nuisances["luma"]["fitted"] and forced.nuisances["luma"]["forced"]
+    np.testing.assert_allclose(float(forced.lenses.f_number[0]), 2.8, rtol=1e-3)

@@ -29,15 +29,18 @@ from .._exif import ExifLens, read_exif
 from .._fit.tiles import SIDE, estimate_fit_memory, use_tiles
 from .._io import (
     _FORMATS,
+    RAW_SUFFIXES,
     InputError,
     _read_raw,
     _suffix,
     check_output,
+    chroma_subsampled,
     read_depth,
     read_image,
     write_image,
 )
 from .._render import _check_downsample, _needs_whole_frame, band_starts, estimate_memory
+from .._upsample import depth_ratio
 from . import plot, report
 from .demo import demo_scene
 from .progress import Display, FitProgress, fit_lens_decoder
@@ -45,7 +48,8 @@ from .report import note
 
 
 FULL_FRAME_WIDTH = 0.036  # m: the default --sensor-width
-EXIF_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png")  # the readable files that hold EXIF
+# the readable files that hold EXIF
+EXIF_SUFFIXES = (".jpg", ".jpeg", ".tif", ".tiff", ".png", *RAW_SUFFIXES)
 
 
 @contextlib.contextmanager
@@ -73,10 +77,20 @@ def _read_inputs(args, display: Display) -> tuple:
         option="DEPTH",
     )
     if depth.shape != img.array.shape[:2]:  # the library would say so too, but not which files
-        raise InputError(
-            f"{args.depth}: depth is {depth.shape[0]}x{depth.shape[1]} (HxW) but image "
-            f"{args.image} is {img.array.shape[0]}x{img.array.shape[1]}; they must match"
+        try:
+            depth_ratio(depth.shape, img.array.shape)
+        except ValueError:
+            raise InputError(
+                f"{args.depth}: depth is {depth.shape[0]}x{depth.shape[1]} (HxW) but image "
+                f"{args.image} is {img.array.shape[0]}x{img.array.shape[1]}; they must match, "
+                "or the depth be a coarser sensor's of the same frame"
+            ) from None
+        display.status(f"upsampling {args.depth} to the image, guided by it")
+        note(
+            f"{args.depth}: depth {depth.shape[0]}x{depth.shape[1]} upsampled to the image's "
+            f"{img.array.shape[0]}x{img.array.shape[1]}, guided by it at depth edges"
         )
+        depth = jaxdof.upsample_depth(depth, img.array)
     return img, depth
 
 
@@ -507,9 +521,24 @@ def fit_call(args, display: Display | None = None) -> FitCall:
         tiles=args.tiles,
         edge_weight=args.edge_weight,
         verbose=verbose,
+        luma=_luma(args),
+        **{k: _choice(getattr(args, k)) for k in ("exposure", "vignetting", "registration")},
         **model,
     )
     return FitCall(img.array, depth, targets, init, kwargs, model, exif)
+
+
+def _choice(value: str) -> bool | None:
+    """`auto`/`on`/`off` as `fit_lens` takes it: None (the fit decides), True, False."""
+    return {"auto": None, "on": True, "off": False}[value]
+
+
+def _luma(args) -> bool | None:
+    """`--luma`: `auto` is on where a TARGET is a JPEG with half-resolution colour (its header
+    says so), else the fit's own rule (None)."""
+    if args.luma != "auto":
+        return _choice(args.luma)
+    return True if any(chroma_subsampled(path) for path in args.targets) else None
 
 
 def _fitted_model(call: FitCall, result) -> dict[str, Any]:
@@ -602,29 +631,40 @@ def run_fit(args) -> int:
 
 def describe(path: str) -> dict[str, Any]:
     """`info`'s object for `path`: what `read_image` reads (the stored array: size, channels,
-    type, the colour encoding it is decoded with) and the file's EXIF lens fields."""
-    raw = _read_raw(path, "image", "FILE")
+    type, the colour encoding it is decoded with) and the file's EXIF lens fields. A camera RAW
+    file is described as LibRaw decodes it (16-bit linear RGB), with what LibRaw read under
+    `"raw"` (`jaxdof._io.read_camera_raw`)."""
     suffix = _suffix(path)
+    decoded = None
+    if suffix in RAW_SUFFIXES:
+        loaded = read_image(path, option="FILE")
+        raw, decoded = loaded.array, loaded.raw_decode
+        dtype, encoding, kind = "uint16", "linear", f"camera RAW ({suffix[1:].upper()})"
+    else:
+        raw = _read_raw(path, "image", "FILE")
+        dtype = raw.dtype.name
+        kind = suffix[1:].upper() if suffix in (".npy", ".npz") else _FORMATS[suffix][0]
+        if raw.dtype in (np.uint8, np.uint16):
+            encoding = "sRGB"
+        elif raw.dtype.kind == "f":
+            encoding = "linear"
+        else:
+            encoding = "unsupported"  # read_image refuses it
     h, w = raw.shape[:2]
     channels = 1 if raw.ndim == 2 else int(raw.shape[-1])
-    if raw.dtype in (np.uint8, np.uint16):
-        encoding = "sRGB"
-    elif raw.dtype.kind == "f":
-        encoding = "linear"
-    else:
-        encoding = "unsupported"  # read_image refuses it
     out: dict[str, Any] = {
         "file": path,
-        "format": suffix[1:].upper() if suffix in (".npy", ".npz") else _FORMATS[suffix][0],
+        "format": kind,
         "width": int(w),
         "height": int(h),
         "channels": channels,
         "colour": {1: "grey", 2: "grey+alpha", 3: "RGB", 4: "RGBA"}.get(channels, "other"),
         "alpha": channels in (2, 4),
-        "dtype": raw.dtype.name,
-        "bits": 8 * raw.dtype.itemsize,
+        "dtype": dtype,
+        "bits": np.dtype(dtype).itemsize * 8,
         "encoding": encoding,
         "exif": None,
+        **({} if decoded is None else {"raw": decoded}),
     }
     if suffix in EXIF_SUFFIXES:
         try:
@@ -640,8 +680,26 @@ def describe(path: str) -> dict[str, Any]:
 
 
 def run_info(args) -> int:
-    report.print_info(describe(args.file), as_json=args.json)
+    info = describe(args.file)
+    report.print_info(info, as_json=args.json)
+    if "raw" in info and not args.json:
+        _print_raw(info["raw"])
     return 0
+
+
+def _print_raw(raw: dict[str, Any]) -> None:
+    """What LibRaw read from a camera RAW file and how it decoded it, below `print_info`'s lines."""
+    width, height = raw["raw_size"]
+    mosaic = f"CFA {raw['cfa']}" if raw["cfa"] else "no colour mosaic"
+    print(f"  {'RAW':16s}{raw['decoder']}: {width} x {height} stored pixels, {mosaic}")
+    levels = "/".join(str(b) for b in raw["black_level"])
+    print(f"  {'levels':16s}black {levels} (per {raw['colours']}), white {raw['white_level']}")
+    gains = ", ".join(f"{c} {g:.4g}" for c, g in zip(raw["colours"], raw["white_balance"]))
+    print(f"  {'white balance':16s}{raw['white_balance_source']}: {gains}")
+    print(
+        f"  {'decoded':16s}{raw['demosaic']} demosaic, sRGB primaries, linear light (no tone "
+        "curve), 16-bit"
+    )
 
 
 # ----------------------------------------------------------------------------------------------

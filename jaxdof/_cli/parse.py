@@ -363,6 +363,7 @@ _EPILOG_INFO = """\
 examples:
   jaxdof info photo.jpg
   jaxdof info photo.tif --json
+  jaxdof info photo.nef            # a camera RAW file, as LibRaw decodes it (needs rawpy)
 """
 
 _EPILOG_DEMO = """\
@@ -455,6 +456,26 @@ def _add_fit_pixels(fit) -> None:
         help="fit on informative tiles of the photo: auto (default: 2^17 pixels of tiles for "
         "photos over 2^20 pixels), off (the whole frame) or a budget of N photo pixels",
     )
+    for name, what in (
+        ("exposure", "a gain and offset per TARGET"),
+        ("vignetting", "a radial gain 1 + a r^2 + b r^4 per TARGET"),
+        ("registration", "a shift and magnification (focus breathing) per TARGET"),
+    ):
+        fit.add_argument(
+            f"--{name}",
+            choices=("auto", "on", "off"),
+            default="auto",
+            help=f"fit {what}: auto (default: where a score test at the fit without it asks for "
+            "it), on or off",
+        )
+    fit.add_argument(
+        "--luma",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="compare the photos in their sRGB luma: auto (default: on for a JPEG TARGET with "
+        "half-resolution colour, 4:2:0 or 4:2:2, as cameras write; else where a TARGET has lost "
+        "the all-in-focus image's colour detail), on or off",
+    )
     fit.add_argument(
         "--memory",
         type=parse_memory,
@@ -533,11 +554,15 @@ def _add_info(sub) -> None:
         description="Print what jaxdof reads from FILE: its size, channels, bit depth and type, "
         "the colour encoding it is read with (integers as sRGB, floats as linear light), and "
         "the lens fields of its EXIF metadata (focal length, f-number, focus distance, pixel "
-        "pitch), which `fit` starts from.",
+        "pitch), which `fit` starts from. A camera RAW file (DNG, CR2, CR3, NEF, ARW, RAF, ORF, "
+        "RW2, PEF, SRW, ...) is decoded by LibRaw in linear light; info adds its mosaic, black "
+        "and white levels and the white balance used.",
         epilog=_EPILOG_INFO,
         formatter_class=_FORMAT,
     )
-    info.add_argument("file", metavar="FILE", help="image file (PNG, TIFF, JPEG, .npy, .npz)")
+    info.add_argument(
+        "file", metavar="FILE", help="image file (PNG, TIFF, JPEG, .npy, .npz, camera RAW)"
+    )
     info.add_argument(
         "--json",
         action="store_true",

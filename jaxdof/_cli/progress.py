@@ -194,7 +194,7 @@ def fit_lens_decoder(
 
     d = np.asarray(depth)
     base = np.asarray(_base(np, init, n_targets), d.dtype)
-    layout = _Spec(tuple(free), tuple(shared), n_targets, False).layout(base, d)
+    layout = _Spec(tuple(free), tuple(shared), n_targets).layout(base, d)
 
     def decode(y: np.ndarray) -> np.ndarray:
         return np.asarray(natural(jnp.asarray(y, base.dtype), layout))

@@ -89,12 +89,8 @@ def print_fit(
     print(f"pixels used {summary['pixels_used']}{of} (border {summary['border']} px)")
     if summary.get("treatment"):
         print(f"treatment: {summary['treatment']['text']}")
-    exposure = (summary.get("nuisances") or {}).get("exposure")
-    if exposure:
-        gains = ", ".join(f"{g:.4g}" for g in summary["gain"])
-        offsets = ", ".join(f"{o:.3g}" for o in summary["offset"])
-        extra = f": gain {gains}, offset {offsets}" if exposure.get("fitted") else ""
-        print(f"exposure: {exposure['text']}{extra}")
+    for name, entry in (summary.get("nuisances") or {}).items():
+        print(f"{name}: {entry['text']}")
     line = _adequacy_line(summary)
     if line is not None:
         print(line)

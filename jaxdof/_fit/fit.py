@@ -9,6 +9,7 @@ The two compiled calls per level (`solve.fit_starts`, `solve.finish`) run throug
 from __future__ import annotations
 
 import dataclasses
+import math
 import re
 from collections.abc import Callable, Sequence
 
@@ -20,12 +21,15 @@ import optimistix as optx
 import scipy.stats
 from jaxtyping import ArrayLike
 
+from .. import _tuning
 from .._filters import AbstractMethod
 from .._filters.common import is_concrete
 from .._lens import ThinLens
+from .._upsample import upsample_depth
 from .forward import AbstractForwardModel
-from .layout import LENS_FIELDS, pack, theta_floor
+from .layout import LENS_FIELDS, nuisance_names, pack, theta_floor
 from .lm import bounded
+from .photo import NUISANCES, canonical, chroma_detail, half_diagonal
 from .prepare import (
     Problem,
     _check_names,
@@ -39,13 +43,12 @@ from .residual import _Model
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
 from .select import (
     alternatives,
-    forced_exposure,
     kept,
     prefers,
     refit_call,
     rounding_sigma,
     selected,
-    with_exposure,
+    with_nuisances,
 )
 from .solve import default_solver, degenerate_at, finish, fit_starts, restate, run_stage
 from .strategies import (
@@ -124,11 +127,14 @@ class _Run:
     levels: int
     border: int | None  # the user's band (photo pixels); None: the window's (automatic)
     init_last: bool = False  # the last start is the raw init, outside the window's reach
+    extra_band: int = 0  # photo pixels added to the band (a registration's reach)
 
     def residual(self, window: float) -> _Model:
         """The residual function with a given filter window."""
         spec = self.problem.spec
-        return _Model(spec.n_targets, window, spec.exposure, self.forward, len(spec.used))
+        return _Model(
+            spec.n_targets, window, spec.nuisances, self.forward, len(spec.used), spec.luma
+        )
 
     def solve(self, window: float, y0s, args, level: int, solver, max_steps: int | None = None):
         """One `fit_starts` stage at pyramid `level` (0: full resolution) with `window` (that
@@ -137,6 +143,7 @@ class _Run:
         used and the band asked for (they differ when the band would leave no pixel)."""
         model = self.residual(window)
         wanted = level_band(self.border, self.forward, window, level)
+        wanted += -(-self.extra_band // 2**level)  # the registration's reach, any band
         sqrt_w, band = apply_border(args[3], wanted)
         args = (*args[:3], sqrt_w, args[4])
         tag = f"level {level} " if self.levels > 1 else ""
@@ -173,7 +180,7 @@ def _coarse_to_fine(run: _Run, rows0: np.ndarray, window: float):
     statistics are those of the full-resolution fit. With one level: the starts themselves.
     """
     p = run.problem
-    y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.exposure)
+    y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.nuisances)
     if run.levels == 1:
         return y0_init, rows0
     pyr = [(p.image, p.depth, p.targets, p.sqrt_w, p.b)]
@@ -333,7 +340,7 @@ def _init_elsewhere(info, p: Problem, layout) -> bool:
         return False
     used = list(p.spec.used)
     theta = np.asarray(info["theta"], np.float64)[:, used]
-    floor = np.asarray(theta_floor(layout, p.spec.exposure), np.float64)[used]
+    floor = np.asarray(theta_floor(layout, p.spec.nuisances), np.float64)[used]
     size = np.maximum(np.abs(theta[best]), floor)
     return not bool(info["converged"][0]) or distinct(
         theta[0], theta[best], floor, slack=_SAME_BASIN * size
@@ -356,7 +363,7 @@ def _on_tiles(run: _Run, rows0: np.ndarray, window: float, budget: int, levels: 
     p, forward = run.problem, run.forward
     _stage(run.verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
     q = scout_factor(p.photo, forward.max_circle(rows0, p.d), levels)  # levels 1: one start
-    y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.exposure)
+    y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.nuisances)
     if q == 1:
         chosen = choose_tiles(
             p, forward, window, budget, lambda: pixel_information(p, forward, rows0)
@@ -488,7 +495,7 @@ def _ambiguity(info, p: Problem) -> str | None:
     spec = p.spec
     used = list(spec.used)
     theta = np.asarray(info["theta"], np.float64)[:, used]
-    floor = np.asarray(theta_floor(p.layout, spec.exposure), np.float64)[used]
+    floor = np.asarray(theta_floor(p.layout, spec.nuisances), np.float64)[used]
     sigma2 = float(info["sigma"]) ** 2
     n_p = len(used)
     floor_loss = float(jnp.finfo(p.dtype).eps) * float(
@@ -662,7 +669,7 @@ def _failed(run: _Run, err: BaseException, window: float) -> FitResult:
     t, dtype = spec.n_targets, p.dtype
     nan = np.full((t,), np.nan, dtype)
     one = (lambda x: x[0]) if p.single else (lambda x: x)
-    names = spec.free + (("gain", "offset") if spec.exposure else ())
+    names = spec.free + nuisance_names(spec.nuisances)
     sqrt_w, band = apply_border(p.sqrt_w, level_band(run.border, run.forward, window, 0))
     live = np.any(sqrt_w > 0, axis=-1) if sqrt_w.ndim == 4 else sqrt_w > 0
     return FitResult(
@@ -702,6 +709,9 @@ def fit_lens(
     max_radius: float | None = None,
     allow_degenerate: bool = False,
     exposure: bool | None = None,
+    vignetting: bool | None = None,
+    registration: bool | None = None,
+    luma: bool | None = None,
     starts: int | None = None,
     verbose: bool | Callable[..., None] = False,
     model: AbstractForwardModel | None = None,
@@ -755,9 +765,18 @@ def fit_lens(
       exceed the true largest circle.
     - `allow_degenerate`: return a fit whose free fields the data cannot all determine (with
       `success=False` and `inf` standard errors for the undetermined fields) instead of raising.
-    - `exposure`: a gain and an offset per target (nuisance parameters): `None` (default)
-      decides from the photo (a score test at the fit without them, `SELECT_ALPHA`; fitted where
-      it rejects, reported in `FitResult.nuisances`), `True` fits them, `False` does not.
+    - `exposure`, `vignetting`, `registration`: what the camera adds, per target
+      (`jaxdof/_fit/photo.py`): a gain and an offset; a radial gain `1 + a rho^2 + b rho^4`
+      (`rho` 1 in the corners); a shift and a magnification about the centre (a tripod that
+      moved, focus breathing; the band left out grows by its reach). `None` (default): fitted
+      where the photo needs it, by a score test at the fit without it (level `SELECT_ALPHA`)
+      whose Gauss-Newton step would move the lens by more than `SELECT_MOVE` of its standard
+      errors (`select.with_nuisances`); `True` fits it, `False` does not. Vignetting and
+      registration need the whole frame (`tiles=None` for a large photo). Each decision, the
+      test and the fitted values (shifts in photo pixels) are in `FitResult.nuisances`.
+    - `luma`: compare colour photos in their sRGB luma `Y'` (the render encoded as the photo
+      was): `None` (default) where a photo has lost the image's colour detail (a camera JPEG,
+      whose colour is stored at half resolution: `_tuning.LUMA_CHROMA`), `True`, `False`.
     - `starts`: number of starting points (default 4 when the focus distance is free, else 3): the
       `init` lens, then focus distances spread evenly in diopters over the scene's depth range
       (keeping `K` through `N` where possible), which covers the near/far ambiguity; with the focus
@@ -896,7 +915,20 @@ def fit_lens(
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
     call = dict(locals())
-    call["exposure"] = bool(exposure)
+    asked = {"exposure": exposure, "vignetting": vignetting, "registration": registration}
+    for name, value in (*asked.items(), ("luma", luma)):
+        if value not in (None, True, False):
+            raise ValueError(f"{name} must be None (decide from the photo), True or False")
+    for name in asked:
+        del call[name]
+    call["nuisances"] = canonical(k for k, v in asked.items() if v)
+    call["luma"], luma_entry = _choose_luma(image, targets, luma)
+    coarse = np.shape(depth)
+    if len(coarse) == 2 and np.ndim(image) in (2, 3) and coarse != np.shape(image)[:2]:
+        # A depth sensor coarser than the image: upsampled once, guided by the image.
+        call["depth"] = upsample_depth(np.asarray(depth), np.asarray(image))
+    else:
+        coarse = ()
     result = _fit_treated(**call)
     # The photo's say in the treatment (`select.py`): each choice of the scene's changed in turn,
     # kept only where the photo prefers it.
@@ -909,19 +941,40 @@ def fit_lens(
             continue
         better, chi2 = prefers(alt, result, rounding)
         result = selected(alt, result, name, chi2) if better else kept(result, name, chi2)
-    if exposure is None:
-        # ... and in the exposure: a gain and an offset per photo where a score test at the fit
-        # without them rejects it (`select.with_exposure`).
-        result = with_exposure(result, call, _fit_treated, rounding)
-    else:
-        result = dataclasses.replace(result, nuisances=forced_exposure(result, bool(exposure)))
-    return result
+    # ... and in what the camera added: each nuisance fitted where a score test at the fit
+    # without it rejects (`select.with_nuisances`), the caller's choices as given.
+    result = with_nuisances(result, call, _fit_treated, rounding, asked)
+    if coarse and result.treatment is not None:
+        treatment = dataclasses.replace(result.treatment, depth_upsampled=tuple(coarse))
+        result = dataclasses.replace(result, treatment=treatment)
+    return dataclasses.replace(result, nuisances={**(result.nuisances or {}), "luma": luma_entry})
+
+
+def _choose_luma(image, targets, luma: bool | None) -> tuple[bool, dict]:
+    """Whether to compare the photos in their sRGB luma, and the decision's record: the caller's
+    `luma`, else where a colour photo has lost the colour detail of the all-in-focus image (its
+    `photo.chroma_detail` under `_tuning.LUMA_CHROMA` of the image's: a camera JPEG's chroma,
+    stored at half resolution), in any of the photos. `chroma_detail` in the record is the
+    smallest ratio."""
+    arr = [np.asarray(t) for t in targets] if isinstance(targets, (list, tuple)) else None
+    if arr is None:
+        t = np.asarray(targets)
+        arr = list(t) if t.ndim == 4 else [t]
+    colour = np.ndim(image) == 3 and all(a.ndim == 3 and a.shape[-1] == 3 for a in arr)
+    detail = math.nan
+    if colour and luma is None:
+        of_image = chroma_detail(np.asarray(image))
+        detail = min(chroma_detail(a) for a in arr) / of_image if of_image > 0 else math.nan
+    if luma is not None:
+        return bool(luma), {"fitted": bool(luma), "forced": True, "chroma_detail": detail}
+    on = bool(colour and detail < _tuning.LUMA_CHROMA)
+    return on, {"fitted": on, "forced": False, "chroma_detail": detail}
 
 
 def _fit_treated(
     image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
-    allow_degenerate, exposure: bool, starts, verbose, model, method, footprint, pyramid,
-    downsample, border, tiles, edge_weight,
+    allow_degenerate, nuisances: tuple[str, ...], luma: bool, starts, verbose, model, method,
+    footprint, pyramid, downsample, border, tiles, edge_weight, registration_reach=None,
 ) -> FitResult:  # fmt: skip
     """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection."""
     given = dict(locals())  # the call, to refit on tiles chosen for a larger window
@@ -936,7 +989,7 @@ def _fit_treated(
         )
     max_steps, n_starts = _check_options(max_steps, starts, verbose, max_radius, free)
     band = check_border(border)
-    p = prepare_problem(image, depth, targets, init, weight, forward, free, shared, exposure)
+    p = prepare_problem(image, depth, targets, init, weight, forward, free, shared, nuisances, luma)
     p, forward, treatment = treat_scene(p, forward, model, method, footprint, edge_weight)
     p_full_pixels = int(p.photo[0] * p.photo[1])
     levels = _check_pyramid(pyramid, p.photo)
@@ -962,6 +1015,15 @@ def _fit_treated(
         levels = 1
     user_window = None if max_radius is None else window
     run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, 1, band)
+    framed = {"vignetting", "registration"} & set(p.spec.nuisances)
+    if framed and budget is not None:
+        raise ValueError(
+            f"{' and '.join(sorted(framed))} are fitted on the whole frame (they depend on where "
+            "a pixel is in it), not on tiles: pass tiles=None"
+        )
+    if "registration" in p.spec.nuisances:
+        reach = _registration_reach(p.photo) if registration_reach is None else registration_reach
+        run = dataclasses.replace(run, extra_band=reach)
     chosen = None
     try:
         if budget is None:
@@ -998,8 +1060,12 @@ def _fit_treated(
         result,
         border=used,
         treatment=dataclasses.replace(treatment, border=used),
-        nuisances={"exposure": _exposure_entry(info, p.spec)},
+        nuisances=_nuisance_entries(info, p.spec, p.photo, tiled=chosen is not None),
     )
+    if "registration" in p.spec.nuisances:
+        needed = _registration_reach(p.photo, info["nuisance_values"])
+        if needed > run.extra_band:  # the fitted registration reads beyond the band: again
+            return _fit_treated(**{**given, "registration_reach": needed})
     if chosen is not None:
         if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
             return _fit_treated(**{**given, "max_radius": window, "tiles": budget})
@@ -1018,18 +1084,63 @@ def _fit_treated(
     return _verdict(run, result, info, r_final, window, notes, allow_degenerate)
 
 
-def _exposure_entry(info, spec) -> dict:
-    """`FitResult.nuisances["exposure"]`: fitted or not, and the score test of one at this fit."""
-    dof = 2 * spec.n_targets
-    score = float(np.asarray(info.get("exposure_score", np.nan)))
-    p_value = float(scipy.stats.chi2.sf(score, dof)) if not spec.exposure else float("nan")
-    return {"fitted": bool(spec.exposure), "score": score, "dof": dof, "p_value": p_value}
+# The registration a fit allows for before it has one (photo pixels): a shift of up to 2 px and
+# a magnification of up to 2 %, the Lanczos kernel's 3 taps added (`_registration_reach`).
+_REGISTRATION_SHIFT = 2.0
+_REGISTRATION_MAGNIFICATION = 0.02
+
+
+def _registration_reach(photo, values=None) -> int:
+    """The photo pixels along the edges whose registered value reads the render past its edge
+    (or its taps): `|s| + |m| R` (`R` the half diagonal) and the kernel's 3 taps, for the fitted
+    `values` of every photo, else for the largest registration allowed for before a fit."""
+    r = half_diagonal(photo[0], photo[1])
+    if values is None:
+        shift, mag = _REGISTRATION_SHIFT, _REGISTRATION_MAGNIFICATION
+    else:
+        sx, sy = (np.abs(np.asarray(values[k], np.float64)) * r for k in ("shift_x", "shift_y"))
+        shift = float(np.max(np.maximum(sx, sy)))
+        mag = float(np.max(np.abs(np.asarray(values["magnification"], np.float64))))
+    return int(math.ceil(shift + mag * r)) + 3
+
+
+def _nuisance_entries(info, spec, photo, tiled: bool) -> dict:
+    """`FitResult.nuisances`: per nuisance of `photo.NUISANCES`, fitted or not, its values (in
+    photo pixels for shifts) and the score test of it at this fit (where not fitted; untested on
+    tiles for the ones that depend on the whole frame)."""
+    scores = np.asarray(info.get("nuisance_scores", np.full(len(NUISANCES), np.nan)))
+    moves = np.asarray(info.get("nuisance_moves", np.full(len(NUISANCES), np.nan)))
+    r = half_diagonal(photo[0], photo[1])
+    out = {}
+    for k, (name, params) in enumerate(NUISANCES.items()):
+        fitted = name in spec.nuisances
+        dof = len(params) * spec.n_targets
+        score = float(scores[k])
+        if fitted or (tiled and name != "exposure"):
+            score = math.nan
+        entry = {
+            "fitted": fitted,
+            "score": score,
+            "dof": dof,
+            "p_value": float(scipy.stats.chi2.sf(score, dof)) if math.isfinite(score) else math.nan,
+            "move": float(moves[k]) if math.isfinite(score) else math.nan,
+        }
+        if fitted:
+            entry["values"] = {
+                n: [
+                    float(v) * (r if n.startswith("shift") else 1.0)
+                    for v in np.asarray(info["nuisance_values"][n])
+                ]
+                for n in params
+            }
+        out[name] = entry
+    return out
 
 
 def _determined_at_init(model: _Model, rows0: np.ndarray, args, p) -> bool:
     """Whether the photos determine the free set at the init lens (full rank there); `False`
     also when the test itself fails (the refusal then stands)."""
-    y_init = pack(rows0[:1].astype(p.dtype), args[-1], p.spec.exposure)[0]
+    y_init = pack(rows0[:1].astype(p.dtype), args[-1], p.spec.nuisances)[0]
     try:
         return not bool(run_stage("rank at init", degenerate_at, model, y_init, args, p.spec))
     except _SOLVER_ERRORS:

@@ -1,7 +1,8 @@
 r"""The parameter layout of a fit and its unconstrained coordinates.
 
 The solver's vector `y` holds `3 T` lens coordinates, field-major (`y[j T + t]` is field `j` of
-target `t`), then with `exposure` `T` gains and `T` offsets. Every iterate is a physical lens:
+target `t`), then `T` slots for each parameter of each fitted nuisance (`photo.NUISANCES`: with
+`exposure`, `T` gains and `T` offsets, ...). Every iterate is a physical lens:
 
 - focal length: `logit(f / fcap)`, with `fcap` just under the nearest depth (and under the focus
   distance when that is fixed), so `f < fcap` always;
@@ -51,6 +52,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._lens import ThinLens
+from .photo import NUISANCES, NULL
 
 
 LENS_FIELDS = ("focal_length", "f_number", "focus_distance")
@@ -95,10 +97,14 @@ class _Layout(eqx.Module):
 
 
 class _Spec:
-    """Python-side description of a fit: free/shared fields, targets, exposure -> slots and names."""
+    """Python-side description of a fit: free/shared fields, targets, the fitted nuisances (in
+    `photo.NUISANCES` order) -> slots and names."""
 
-    def __init__(self, free, shared, n_targets: int, exposure: bool):
-        self.free, self.shared, self.n_targets, self.exposure = free, shared, n_targets, exposure
+    def __init__(
+        self, free, shared, n_targets: int, nuisances: tuple[str, ...] = (), luma: bool = False
+    ):
+        self.free, self.shared, self.n_targets = free, shared, n_targets
+        self.nuisances, self.luma = tuple(nuisances), bool(luma)
         used, names = [], []
         multi = n_targets > 1
         for j, name in enumerate(LENS_FIELDS):
@@ -108,16 +114,19 @@ class _Spec:
             for t in ts:
                 used.append(j * n_targets + t)
                 names.append(name if (name in shared or not multi) else f"{name}[{t}]")
-        if exposure:
-            for k, name in ((3, "gain"), (4, "offset")):
-                for t in range(n_targets):
-                    used.append(k * n_targets + t)
-                    names.append(f"{name}[{t}]" if multi else name)
+        for k, name in enumerate(nuisance_names(self.nuisances), start=3):
+            for t in range(n_targets):
+                used.append(k * n_targets + t)
+                names.append(f"{name}[{t}]" if multi else name)
         self.used, self.names = tuple(used), tuple(names)
+
+    @property
+    def exposure(self) -> bool:
+        return "exposure" in self.nuisances
 
     # A spec is static data of the compiled fit: equal specs must share one compilation.
     def _key(self):
-        return (self.free, self.shared, self.n_targets, self.exposure)
+        return (self.free, self.shared, self.n_targets, self.nuisances, self.luma)
 
     def __eq__(self, other):
         return isinstance(other, _Spec) and self._key() == other._key()
@@ -179,15 +188,30 @@ def natural(y: Float[Array, " P"], layout: _Layout) -> Float[Array, "t 4"]:
     return jnp.stack([f, n, d_f, base[:, 3]], axis=-1)
 
 
-def exposure_params(y: Float[Array, " P"], n_targets: int, exposure: bool) -> tuple[Array, Array]:
-    """Gain and offset per target (ones and zeros without `exposure`)."""
+def nuisance_names(nuisances: tuple[str, ...]) -> tuple[str, ...]:
+    """The parameters of the fitted `nuisances`, in slot order."""
+    return tuple(n for k in nuisances for n in NUISANCES[k])
+
+
+def nuisance_params(y: Float[Array, " P"], n_targets: int, nuisances: tuple[str, ...]) -> dict:
+    """Every nuisance parameter per target, `(T,)` each: the fitted ones read from `y`, the
+    others at their null (a gain of 1, else 0)."""
     t = n_targets
-    if not exposure:
-        return jnp.ones(t, y.dtype), jnp.zeros(t, y.dtype)
-    return y[3 * t : 4 * t], y[4 * t : 5 * t]
+    out = {n: jnp.full((t,), NULL.get(n, 0.0), y.dtype) for k in NUISANCES for n in NUISANCES[k]}
+    for k, name in enumerate(nuisance_names(nuisances), start=3):
+        out[name] = y[k * t : (k + 1) * t]
+    return out
 
 
-def pack(params: Float[_Arr, "*s t 4"], layout: _Layout, exposure: bool) -> Float[_Arr, "*s P"]:
+def exposure_params(y: Float[Array, " P"], n_targets: int, nuisances: tuple[str, ...]):
+    """Gain and offset per target (ones and zeros without the exposure nuisance)."""
+    p = nuisance_params(y, n_targets, nuisances)
+    return p["gain"], p["offset"]
+
+
+def pack(
+    params: Float[_Arr, "*s t 4"], layout: _Layout, nuisances: tuple[str, ...] = ()
+) -> Float[_Arr, "*s P"]:
     """Inverse of `natural` (a shared field takes the first target's value; `d_f = inf`, and any
     focus beyond `1e12 fcap`, is `y = 0`).
 
@@ -198,27 +222,28 @@ def pack(params: Float[_Arr, "*s t 4"], layout: _Layout, exposure: bool) -> Floa
     f, n, d_f = params[..., 0], params[..., 1], params[..., 2]
     w = xp.maximum(layout.fcap / (d_f - f) - _W_MIN, 0)  # fcap / inf = 0
     coords = [xp.log(f) - xp.log(layout.fcap - f), xp.log(n), w.astype(f.dtype)]
-    if exposure:
-        coords += [xp.ones_like(f), xp.zeros_like(f)]
+    for name in nuisance_names(nuisances):
+        coords.append(xp.full_like(f, NULL.get(name, 0.0)))
     return xp.concatenate(coords, axis=-1)
 
 
-def theta(y: Float[Array, " P"], layout: _Layout, exposure: bool) -> Float[Array, " P"]:
+def theta(y: Float[Array, " P"], layout: _Layout, nuisances: tuple[str, ...] = ()) -> Array:
     """The value of every slot in its statistical units: focal length (m), f-number, focus power
     `u = 1 / d_f` (diopters, 1/m: finite and smooth through infinity, where `d_f` is not), then
-    gain and offset. The statistics are computed in these; `solve._assemble` maps the focus power
+    the nuisances' parameters (gain, offset, ...). The statistics are computed in these; `solve._assemble` maps the focus power
     to the focus distance at the end."""
     f, n, w = _fields(y, layout)
     free = layout.use[:, 2]
     # u = 1 / (f + fcap / w) = w / (fcap + f w), without the round trip through d_f.
     u = jnp.where(free, w / (layout.fcap + f * w), 1 / layout.base[:, 2])
     out = [f, n, u]
-    if exposure:
-        out += list(exposure_params(y, f.shape[0], exposure))
+    t = f.shape[0]
+    for k in range(len(nuisance_names(nuisances))):
+        out.append(y[(3 + k) * t : (4 + k) * t])
     return jnp.concatenate(out)
 
 
-def theta_floor(layout: _Layout, exposure: bool) -> Float[_Arr, " P"]:
+def theta_floor(layout: _Layout, nuisances: tuple[str, ...] = ()) -> Float[_Arr, " P"]:
     """An absolute scale under which a slot's value counts as 0, per slot of `theta`: `1 / fcap`
     (diopters, the power of the nearest depth) for the focus power, which is 0 at infinity, and
     the smallest normal number for the others. Comparisons of solutions and the test for
@@ -226,8 +251,7 @@ def theta_floor(layout: _Layout, exposure: bool) -> Float[_Arr, " P"]:
     xp = np if isinstance(layout.fcap, np.ndarray) else jnp
     tiny = xp.full_like(layout.fcap, jnp.finfo(layout.fcap.dtype).tiny)
     out = [tiny, tiny, 1 / layout.fcap]
-    if exposure:
-        out += [tiny, tiny]
+    out += [tiny] * len(nuisance_names(nuisances))
     return xp.concatenate(out)
 
 

@@ -15,6 +15,7 @@ from .._holes import depth_holes, filled, near_holes
 from .._lens import ThinLens
 from .forward import AbstractForwardModel, DefocusModel
 from .layout import ALL_FIELDS, LENS_FIELDS, _Arr, _Layout, _Spec
+from .photo import luma
 
 
 def forward_model(model, *, method=None, footprint=None, downsample=None) -> AbstractForwardModel:
@@ -146,8 +147,9 @@ class Problem:
 
 
 def prepare_problem(
-    image, depth, targets, init, weight, model: AbstractForwardModel, free, shared, exposure: bool
-) -> Problem:
+    image, depth, targets, init, weight, model: AbstractForwardModel, free, shared,
+    nuisances: tuple[str, ...] = (), luma: bool = False,
+) -> Problem:  # fmt: skip
     """`_prepare` in numpy plus the checks that need values, and the layout: one `Problem`."""
     # Depth holes (NaN, 0, negative: no data) are filled so that the render runs; the photo
     # pixels their light reaches leave the residual once the window is known (`leave_out_holes`).
@@ -173,7 +175,9 @@ def prepare_problem(
             f"depth must exceed the focal length everywhere (metres; found min depth {np.nanmin(d)} m "
             f"or NaN, focal length {b[:, 0].max()} m)"
         )
-    spec = _Spec(free, shared, targets.shape[0], bool(exposure))
+    spec = _Spec(free, shared, targets.shape[0], nuisances, luma)
+    if spec.luma:
+        targets, sqrt_w = (np.asarray(x) for x in luma_targets(targets, sqrt_w))
     layout = spec.layout(base, depth)
     fcap = np.asarray(layout.fcap, np.float64)
     if np.any(b[:, 0] >= fcap):
@@ -185,6 +189,21 @@ def prepare_problem(
     return Problem(
         image, depth, targets, sqrt_w, base, bool(single), ratio, spec, layout, d, b, fcap, holes
     )
+
+
+def luma_targets(targets, sqrt_w):
+    """Colour targets `(T, H, W, 3)` and their weights as their sRGB luma `(T, H, W, 1)`
+    (`photo.luma`) and the smallest weight of each pixel's channels (a masked channel masks the
+    pixel). Anything else is refused: the luma is of RGB photos."""
+    if targets.ndim != 4 or targets.shape[-1] != 3:
+        raise ValueError(
+            f"luma=True compares RGB photos in their luma; the targets have shape "
+            f"{targets.shape[1:]}, not (H, W, 3)"
+        )
+    y = luma(jnp.asarray(targets))
+    if isinstance(targets, np.ndarray):  # on the host (`prepare_problem`)
+        return np.asarray(y), np.min(np.asarray(sqrt_w), axis=-1, keepdims=True)
+    return y, jnp.min(sqrt_w, axis=-1, keepdims=True)
 
 
 def leave_out_holes(p: Problem, reach: float) -> tuple[Problem, int]:

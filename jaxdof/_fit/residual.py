@@ -1,8 +1,9 @@
 r"""The residual function handed to optimistix, with a JVP rule that materialises the Jacobian.
 
-$$r(y) = \sqrt{w} \odot \left( g_t\,\mathrm{model}(I, Z, \mathrm{lens}_t(y)) + o_t - T_t \right)$$
+$$r(y) = \sqrt{w} \odot \left( P_t\big(\mathrm{model}(I, Z, \mathrm{lens}_t(y))\big) - T_t \right)$$
 
-flattened over targets `t` and pixels, with `lens_t(y)` the coordinates of `layout.py`.
+flattened over targets `t` and pixels, with `lens_t(y)` the coordinates of `layout.py` and `P_t`
+what the camera adds, its fitted nuisances and the encoding (`photo.camera`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from .._lens import ThinLens
 from . import layout as coords
 from .forward import AbstractForwardModel
 from .layout import _Arr, _Layout
+from .photo import camera
 
 
 class _Model(eqx.Module):
@@ -26,7 +28,8 @@ class _Model(eqx.Module):
 
     `y` holds `3 T` lens coordinates, field-major (`y[j T + t]` is field `j` of target `t`:
     `logit(f / fcap)`, `log N`, and the focus `y` with `fcap / (d_f - f) = |y| + 1e-12`, 0 at
-    infinity; see `layout.py`), then with `exposure` `T` gains and `T` offsets.
+    infinity; see `layout.py`), then `T` slots per parameter of each fitted nuisance
+    (`photo.NUISANCES`, in that order). With `luma`, the photos are compared in their sRGB luma.
     A shared field reads slot `j T` for every target; fixed fields read `base`; unread slots have
     zero Jacobian columns: they are neither differentiated (`n_live`) nor in the statistics.
 
@@ -36,42 +39,49 @@ class _Model(eqx.Module):
 
     n_targets: int = eqx.field(static=True)
     max_radius: float = eqx.field(static=True)
-    exposure: bool = eqx.field(static=True)
+    nuisances: tuple[str, ...] = eqx.field(static=True)
     forward: AbstractForwardModel
     # The number of live slots (`_Layout.live`); None: differentiate every slot.
     n_live: int | None = eqx.field(static=True, default=None)
+    luma: bool = eqx.field(static=True, default=False)
 
     def natural(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, "t 4"]:
         """Lens fields `(f, N, d_f, pitch)` of every target."""
         return coords.natural(y, layout)
 
     def exposure_params(self, y: Float[Array, " P"]) -> tuple[Array, Array]:
-        """Gain and offset per target (ones and zeros without `exposure`)."""
-        return coords.exposure_params(y, self.n_targets, self.exposure)
+        """Gain and offset per target (ones and zeros without the exposure nuisance)."""
+        return coords.exposure_params(y, self.n_targets, self.nuisances)
+
+    def nuisance_params(self, y: Float[Array, " P"]) -> dict[str, Array]:
+        """Every nuisance parameter per target (the unfitted ones at their null)."""
+        return coords.nuisance_params(y, self.n_targets, self.nuisances)
 
     def pack(self, params: Float[_Arr, "*s t 4"], layout: _Layout) -> Float[_Arr, "*s P"]:
         """Inverse of `natural` (numpy or jax; a leading batch of starts allowed)."""
-        return coords.pack(params, layout, self.exposure)
+        return coords.pack(params, layout, self.nuisances)
 
     def theta(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, " P"]:
         """The value of every slot in its statistical units (m, f-number, focus power in
         diopters, gain, offset)."""
-        return coords.theta(y, layout, self.exposure)
+        return coords.theta(y, layout, self.nuisances)
 
     def lenses(self, y: Float[Array, " P"], layout: _Layout) -> ThinLens:
         """The lens of every target, a `ThinLens` with fields `(T,)`."""
         return coords.lenses(y, layout)
 
-    def predict(self, y, args) -> Array:
-        """Rendered targets `(T, H, W[, C])` for parameters `y`."""
+    def render(self, y, args) -> Array:
+        """The forward model's renders `(T, H, W[, C])` at the lenses of `y` (no nuisance)."""
         image, depth, _, _, layout = args
-        lenses = self.lenses(y, layout)
-        gain, offset = self.exposure_params(y)
 
-        def one(lens, g, o):
-            return g * self.forward(image, depth, lens, max_radius=self.max_radius) + o
+        def one(lens):
+            return self.forward(image, depth, lens, max_radius=self.max_radius)
 
-        return jax.vmap(one)(lenses, gain, offset)
+        return jax.vmap(one)(self.lenses(y, layout))
+
+    def predict(self, y, args) -> Array:
+        """Predicted targets `(T, H, W[, C])` (one channel with `luma`) for parameters `y`."""
+        return camera(self.render(y, args), self.nuisance_params(y), self.nuisances, self.luma)
 
     def rounding(self, args) -> Array:
         """Each residual's own rounding `(n,)`, `eps |sqrt(w) T|` in the data's precision: a render

@@ -20,8 +20,20 @@ _UNITS = {"focal_length": "m", "f_number": "", "focus_distance": "m", "gain": ""
 
 
 def nuisance_words(entry: dict) -> str:
-    """One nuisance's decision in words (`FitResult.nuisances[name]`)."""
+    """One nuisance's decision in words (`FitResult.nuisances[name]`), with its fitted values."""
     how = "fitted" if entry.get("fitted") else "not fitted"
+    values = entry.get("values") or {}
+    if values:
+        how += (
+            " ("
+            + "; ".join(f"{n} " + ", ".join(f"{v:.4g}" for v in vs) for n, vs in values.items())
+            + ")"
+        )
+    if "chroma_detail" in entry:  # the luma comparison
+        how = "compared in luma" if entry.get("fitted") else "compared in linear RGB"
+        detail = entry["chroma_detail"]
+        if not entry.get("forced") and math.isfinite(detail):
+            how += f" (chroma detail {detail:.3g} of the luma's)"
     if entry.get("forced"):
         return f"{how} (forced)"
     if entry.get("exact"):
@@ -30,7 +42,24 @@ def nuisance_words(entry: dict) -> str:
     if score is None or p is None or not math.isfinite(float(p)):
         return how
     why = "the photo asked for it" if entry.get("chosen") else "the photo did not ask for it"
-    return f"{how} ({why}: score {float(score):.3g} on {entry.get('dof')} dof, p = {float(p):.2g})"
+    move = entry.get("move")
+    moves = (
+        f", moves the lens {float(move):.2g} se" if move is not None and math.isfinite(move) else ""
+    )
+    return (
+        f"{how} ({why}: score {float(score):.3g} on {entry.get('dof')} dof, p = {float(p):.2g}"
+        f"{moves})"
+    )
+
+
+def _json_value(v):
+    if isinstance(v, float):
+        return _json_float(v)
+    if isinstance(v, dict):
+        return {k: _json_value(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_json_value(x) for x in v]
+    return v
 
 
 def _json_nuisances(nuisances: dict | None) -> dict | None:
@@ -38,7 +67,7 @@ def _json_nuisances(nuisances: dict | None) -> dict | None:
         return None
     out = {}
     for name, entry in nuisances.items():
-        out[name] = {k: (_json_float(v) if isinstance(v, float) else v) for k, v in entry.items()}
+        out[name] = _json_value(entry)
         out[name]["text"] = nuisance_words(entry)
     return out
 
@@ -252,9 +281,12 @@ class FitResult(eqx.Module):
     - `treatment`: what `fit_lens` chose to model and leave out for this scene (occlusion, edge
       weight, footprint, border; a `jaxdof.Treatment`, `str()` says it in words); `None` from
       `solve_lens`, which models what it is given.
-    - `nuisances`: what `fit_lens` decided about each nuisance (today `"exposure"`, a gain and an
-      offset per photo): `{"fitted", "forced", "chosen", "score", "dof", "p_value"}`, the score
-      test at the fit without it (`chosen`: turned on by the photo); `None` from `solve_lens`.
+    - `nuisances`: what `fit_lens` decided about what the camera adds (`"exposure"`,
+      `"vignetting"`, `"registration"`, per photo): `{"fitted", "forced", "chosen", "score",
+      "dof", "p_value", "move"}`, the score test at the fit without it and how far (in standard
+      errors) it would move the lens (`chosen`: turned on by the photo), and `"values"` where
+      fitted (shifts in photo pixels); and `"luma"`: whether the photos were compared in their
+      luma, with the colour detail that decided it. `None` from `solve_lens`.
 
     `message` is the status's message and the notes; `stderr_kind` says what the standard errors
     measure (`"noise"`, or `"tile spread"` when inflated); `lens` is the first target's lens;
@@ -351,9 +383,8 @@ class FitResult(eqx.Module):
                     "(1 / focus_distance)"
                 )
             lines.append(f"  {'K (blur scale)':15s} {float(lens.blur_scale):.6g} px")
-        exposure = (self.nuisances or {}).get("exposure")
-        if exposure:
-            lines.append(f"exposure: {nuisance_words(exposure)}")
+        for name, entry in (self.nuisances or {}).items():
+            lines.append(f"{name}: {nuisance_words(entry)}")
         for name in ("gain", "offset"):
             if name in self.stderr:
                 vals = np.atleast_1d(np.asarray(getattr(self, name)))

@@ -42,8 +42,10 @@ from .result import RESULTS, FitResult, code_of
 
 #: The chi-square margin by which the photo must prefer a simpler treatment (module docstring).
 SELECT_CHI2 = _tuning.SELECT_CHI2
-#: The level of the score test that turns a nuisance on (`with_exposure`).
+#: The level of the score test that turns a nuisance on (`with_nuisances`).
 SELECT_ALPHA = _tuning.SELECT_ALPHA
+#: How far (in the lens's reported standard errors) fitting a nuisance must move the lens.
+SELECT_MOVE = _tuning.SELECT_MOVE
 
 # Statuses whose lens is worth comparing: a converged fit, whatever its verdict.
 _COMPARABLE = ("successful", "inconsistent", "ambiguous", "window")
@@ -160,42 +162,73 @@ def kept(incumbent: FitResult, label: str, chi2: float) -> FitResult:
     return dataclasses.replace(incumbent, treatment=treatment)
 
 
-def with_exposure(result: FitResult, call: dict, fit, rounding: float) -> FitResult:
-    """The fit with a gain and an offset per photo where the photo needs them (`fit`:
-    `fit_lens`'s single-treatment fit).
+def with_nuisances(
+    result: FitResult, call: dict, fit, rounding: float, asked: dict[str, bool | None]
+) -> FitResult:
+    """The fit with what the camera added (`photo.NUISANCES`) where the photo needs it (`fit`:
+    `fit_lens`'s single-treatment fit; `asked`: the caller's choice per nuisance, `None` to
+    decide).
 
-    **The rule.** At the fit without them, the score (Lagrange multiplier) statistic of the gain
-    and offset columns (`solve.exposure_score`, chi-square with `2 T` degrees of freedom when
-    the photo has no exposure error; no refit needed) is tested at level `SELECT_ALPHA`; where it
-    rejects, the fit is solved again with them, from the lens found (or the caller's starts where
-    that fit did not succeed). A score test keeps the default fit's cost where the photo needs
+    **The rule.** At a fit without a nuisance, the score (Lagrange multiplier) statistic of its
+    parameters (`solve.nuisance_scores`, chi-square with `q T` degrees of freedom where the
+    photo has none of it; no refit needed) is tested at level `SELECT_ALPHA`, and the same
+    regression's Gauss-Newton step says how far the nuisance would move the lens, in its
+    reported standard errors (inflated by the tiles' spread where the model lacks something):
+    a nuisance is needed where the test rejects *and* it moves the lens by more than
+    `SELECT_MOVE` of them. (A real photo rejects any model at its noise level, and a nuisance
+    that the test finds but that leaves the lens where it is changes nothing a user reads.)
+    Forward selection: the most significant needed one is fitted (solved again from the lens found, or
+    from the caller's starts where that fit did not succeed), the others tested again at that
+    fit, until none rejects. A score test keeps the default fit's cost where the photo needs
     nothing (Rao 1948, Buse 1982)."""
-    entry = dict((result.nuisances or {}).get("exposure", {}))
+    entries = {k: dict(v) for k, v in (result.nuisances or {}).items()}
+    for name, value in asked.items():
+        entries.setdefault(name, {"fitted": bool(value)})
+        entries[name].update(forced=value is not None, chosen=False)
     # A fit down to the float rounding (a render of the photo's own lens) leaves nothing for a
-    # gain to explain, and its residual is the rounding, which is proportional to the values,
-    # so along the gain column: no test there (the floor of `prefers`).
-    exact = float(np.asarray(result.sigma)) < rounding
-    p_value = entry.get("p_value", math.nan)
-    if _status(result) == "other" or exact or not (p_value < SELECT_ALPHA):
-        entry.update(forced=False, chosen=False, exact=exact)
-        return dataclasses.replace(result, nuisances={"exposure": entry})
-    try:
-        refit = fit(**_from(result, {**call, **_as_chosen(result, call), "exposure": True}))
-    except ValueError:
-        entry.update(forced=False, chosen=False)
-        return dataclasses.replace(result, nuisances={"exposure": entry})
-    entry.update(fitted=True, forced=False, chosen=True)
-    t0, t1 = result.treatment, refit.treatment
-    assert t0 is not None and t1 is not None
-    treatment = dataclasses.replace(t1, forced=t0.forced, selected=t0.selected)
-    return dataclasses.replace(refit, nuisances={"exposure": entry}, treatment=treatment)
-
-
-def forced_exposure(result: FitResult, on: bool) -> dict:
-    """`FitResult.nuisances` of a fit whose exposure the caller set."""
-    entry = dict((result.nuisances or {}).get("exposure", {}))
-    entry.update(fitted=on, forced=True, chosen=False)
-    return {"exposure": entry}
+    # nuisance to explain, and its residual is the rounding, which is proportional to the
+    # values, so along the gain column: no test there (the floor of `prefers`).
+    refused: set[str] = set()
+    for _ in range(len(asked)):
+        if float(np.asarray(result.sigma)) < rounding:
+            for name in asked:
+                entries[name]["exact"] = not entries[name].get("chosen")
+            break
+        candidates = [
+            k
+            for k, value in asked.items()
+            if value is None
+            and k not in refused
+            and not entries[k].get("fitted")
+            and entries[k].get("p_value", math.nan) < SELECT_ALPHA
+            and entries[k].get("move", math.nan) > SELECT_MOVE
+        ]
+        if _status(result) == "other" or not candidates:
+            break
+        # The most significant first: the smallest p-value, then the largest score per dof.
+        pick = min(
+            candidates,
+            key=lambda k: (entries[k]["p_value"], -entries[k]["score"] / entries[k]["dof"]),
+        )
+        on = tuple(k for k in asked if entries[k].get("fitted") or k == pick)
+        try:
+            refit = fit(**_from(result, {**call, **_as_chosen(result, call), "nuisances": on}))
+        except ValueError:
+            refused.add(pick)
+            continue
+        t0, t1 = result.treatment, refit.treatment
+        assert t0 is not None and t1 is not None
+        treatment = dataclasses.replace(t1, forced=t0.forced, selected=t0.selected)
+        chosen = {k for k in asked if entries[k].get("chosen")} | {pick}
+        tested = {k: dict(v) for k, v in (refit.nuisances or {}).items()}
+        for name, value in asked.items():
+            keep = {key: entries[name].get(key) for key in ("score", "dof", "p_value", "move")}
+            tested[name].update(forced=value is not None, chosen=name in chosen)
+            if name in chosen:  # the test that chose it, at the fit without it
+                tested[name].update(keep)
+        result, entries = dataclasses.replace(refit, treatment=treatment), tested
+        call = {**call, "nuisances": on}
+    return dataclasses.replace(result, nuisances=entries)
 
 
 def _from(result: FitResult, call: dict) -> dict:

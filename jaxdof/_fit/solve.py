@@ -38,10 +38,11 @@ from .._filters import AbstractMethod
 from .._lens import ThinLens
 from .adequacy import adequacy, rounding_noise
 from .forward import AbstractForwardModel
-from .layout import _W_MIN, _Spec, theta_floor
+from .layout import _W_MIN, _Spec, nuisance_names, theta_floor
 from .linalg import thin_svd
 from .lm import LevenbergMarquardt
-from .prepare import _check_names, _prepare, check_differentiable, forward_model
+from .photo import NUISANCES, camera, canonical, half_diagonal
+from .prepare import _check_names, _prepare, check_differentiable, forward_model, luma_targets
 from .race import accepted_point, race, tie_margin
 from .residual import _Model
 from .result import RESULTS, FitResult
@@ -131,7 +132,7 @@ def _statistics(residual, jac, g, theta, floor, n, used: tuple[int, ...]) -> dic
 def _statistics_at(residual, jac, g, theta, args, spec: _Spec) -> dict[str, Array]:
     """`_statistics` with the floors and the residual count of the solve's `args`."""
     _, _, targets, sqrt_w, layout = args
-    floor = theta_floor(layout, spec.exposure)
+    floor = theta_floor(layout, spec.nuisances)
     return _statistics(residual, jac, g, theta, floor, _n_residuals(targets, sqrt_w), spec.used)
 
 
@@ -332,28 +333,71 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
     stats = _statistics_at(residual, jac, g, theta, args, spec)
     check = _check_model(residual, jac, args, spec, band)
     result = _assemble(spec, model, (y, status, num_steps, theta), stats, check, args, single)
+    scores, moves = nuisance_scores(model, y, residual, jac, args, spec)
     info = dict(
         status=result.status,
         condition=stats["condition"],
         sigma=stats["sigma"],
         variance=stats["variance"],
-        exposure_score=exposure_score(residual, jac, args, spec),
+        nuisance_scores=scores,
+        # Over the tiles' inflation: the lens's errors as reported, which cover its model error.
+        nuisance_moves=moves / jnp.where(jnp.isfinite(check["inflation"]), check["inflation"], 1),
+        nuisance_values=model.nuisance_params(y),
     )
     return result, info
 
 
-def exposure_score(residual, jac, args, spec: _Spec) -> Array:
-    r"""The score (Lagrange multiplier) statistic for a gain and an offset per target at a fit
-    without them: `LM = ||P_X r||^2 / sigma^2`, `P_X` the projection onto the columns of the
-    lens Jacobian and the nuisance columns (`d r / d g_t = sqrt(w) model_t`, `d r / d o_t =
-    sqrt(w)` on target `t`'s pixels), `sigma^2 = ||r||^2 / (n - p)`. Under a model without
-    exposure error it is chi-square with `2 T` degrees of freedom (Rao 1948; Buse 1982, "The
-    likelihood ratio, Wald, and Lagrange multiplier tests"), and it needs no refit. `0` when the
-    fit already has them (`spec.exposure`)."""
-    if spec.exposure:
-        return jnp.zeros((), residual.dtype)
-    sw, extra = _exposure_columns(residual, args)
-    x = jnp.concatenate([jac[:, jnp.asarray(spec.used)], extra], axis=1)
+def nuisance_columns(model: _Model, y, args) -> dict[str, Array]:
+    """For every nuisance the fit lacks, the derivatives of the weighted residual with respect to
+    its parameters at their null values, `(n, q T)`: from one render (no refit), through
+    `photo.camera` only."""
+    _, _, targets, sqrt_w, _ = args
+    y = y.astype(targets.dtype)
+    raw = model.render(y, args)
+    params = model.nuisance_params(y)
+    out = {}
+    for name in NUISANCES:
+        if name in model.nuisances:
+            continue
+        on = canonical((*model.nuisances, name))
+        names = NUISANCES[name]
+
+        def r(v, names=names, on=on):
+            p = {**params, **{n: v[i] for i, n in enumerate(names)}}
+            return ((camera(raw, p, on, model.luma) - targets) * sqrt_w).reshape(-1)
+
+        v0 = jnp.stack([params[n] for n in names])
+        out[name] = jax.jacfwd(r)(v0).reshape(-1, v0.size)
+    return out
+
+
+def nuisance_scores(model: _Model, y, residual, jac, args, spec: _Spec) -> tuple[Array, Array]:
+    """`score_statistic` of every nuisance of `photo.NUISANCES` at this fit: the statistics
+    `(K,)` and the lens moves `(K,)`; 0 for the fitted ones."""
+    columns = nuisance_columns(model, y, args)
+    zero = jnp.zeros((), residual.dtype)
+    out = [
+        score_statistic(residual, jac, columns[k], args, spec) if k in columns else (zero, zero)
+        for k in NUISANCES
+    ]
+    return jnp.stack([s for s, _ in out]), jnp.stack([m for _, m in out])
+
+
+def score_statistic(residual, jac, extra, args, spec: _Spec) -> tuple[Array, Array]:
+    r"""The score (Lagrange multiplier) statistic for nuisance columns `extra` `(n, q)` (the
+    derivatives of the residual with respect to parameters the fit lacks, at their null) at a
+    fit without them: `LM = ||P_X r||^2 / sigma^2`, `P_X` the projection onto the columns of the
+    fitted parameters' Jacobian and `extra`, `sigma^2 = ||r||^2 / (n - p)`. Where the photo
+    has none of that nuisance it is chi-square with `q` degrees of freedom (Rao 1948; Buse 1982,
+    "The likelihood ratio, Wald, and Lagrange multiplier tests"), and it needs no refit.
+
+    And how far the lens would move with it: the same regression is one Gauss-Newton step of
+    the fit with the nuisance from this solution, whose lens part, over each lens parameter's
+    standard error at this fit (`sigma^2 (X_0^T X_0)^{-1}`, `X_0` the fitted columns), is the
+    second value (the largest over the lens parameters; invariant to their units)."""
+    _, _, targets, sqrt_w, _ = args
+    sw = jnp.broadcast_to(sqrt_w, targets.shape)
+    x = jnp.concatenate([jac[:, jnp.asarray(spec.used)], extra.astype(jac.dtype)], axis=1)
     r = residual.astype(x.dtype)
     # Scaled columns: a gain column is O(1), an offset O(1), a lens column anything.
     norms = jnp.sqrt(jnp.sum(jnp.square(x), axis=0))
@@ -362,7 +406,15 @@ def exposure_score(residual, jac, args, spec: _Spec) -> Array:
     fitted = xs @ beta
     n = jnp.sum(sw > 0).astype(r.dtype)
     sigma2 = (r @ r) / jnp.maximum(n - len(spec.used), 1)
-    return ((fitted @ fitted) / jnp.maximum(sigma2, jnp.finfo(r.dtype).tiny)).astype(residual.dtype)
+    tiny = jnp.finfo(r.dtype).tiny
+    score = ((fitted @ fitted) / jnp.maximum(sigma2, tiny)).astype(residual.dtype)
+    p = len(spec.used)
+    n_lens = p - len(nuisance_names(spec.nuisances)) * spec.n_targets
+    x0 = xs[:, :p]
+    inv = jnp.linalg.pinv(x0.T @ x0, hermitian=True)
+    se = jnp.sqrt(jnp.maximum(sigma2 * jnp.diag(inv), tiny))[:n_lens]
+    move = jnp.max(jnp.abs(beta[:n_lens]) / se) if n_lens else jnp.zeros((), r.dtype)
+    return score, move.astype(residual.dtype)
 
 
 @eqx.filter_jit
@@ -416,9 +468,12 @@ def _assemble(spec: _Spec, model: _Model, point, stats, check, args, single) -> 
         spec, y, theta, stats["variance"] * s2, stats["covariance"] * s2
     )
     stderr: dict[str, Array] = {}
-    for name in spec.free + (("gain", "offset") if spec.exposure else ()):
+    # Shifts are fitted in half diagonals and reported in photo pixels.
+    r = half_diagonal(targets.shape[1], targets.shape[2])
+    for name in spec.free + nuisance_names(spec.nuisances):
         idx = [i for i, nm in enumerate(spec.names) if nm.split("[")[0] == name]
-        se = jnp.broadcast_to(jnp.sqrt(var[jnp.asarray(idx)]), (spec.n_targets,))
+        unit = r if name.startswith("shift") else 1.0
+        se = jnp.broadcast_to(unit * jnp.sqrt(var[jnp.asarray(idx)]), (spec.n_targets,))
         stderr[name] = se[0] if single else se  # a shared field repeats its one value
     idx = [i for i, nm in enumerate(spec.names) if nm.split("[")[0] == "focus_distance"]
     se_power = jnp.broadcast_to(
@@ -511,6 +566,9 @@ def solve_lens(
     max_steps: int = 100,
     weight: ArrayLike | None = None,
     exposure: bool = False,
+    vignetting: bool = False,
+    registration: bool = False,
+    luma: bool = False,
     model: AbstractForwardModel | None = None,
     method: str | AbstractMethod | None = None,
     footprint: bool | None = None,
@@ -550,9 +608,14 @@ def solve_lens(
         band, mask = 0, border_mask(targets.shape[1:3], 0)
     mask = mask[None, :, :, None] if targets.ndim == 4 else mask[None]
     sqrt_w = sqrt_w * jnp.asarray(mask, sqrt_w.dtype)
-    spec = _Spec(free, shared, targets.shape[0], bool(exposure))
+    on = {"exposure": exposure, "vignetting": vignetting, "registration": registration}
+    spec = _Spec(free, shared, targets.shape[0], canonical(k for k, v in on.items() if v), luma)
+    if spec.luma:
+        targets, sqrt_w = luma_targets(targets, sqrt_w)
     layout = spec.layout(base, depth)
-    residual = _Model(targets.shape[0], float(max_radius), bool(exposure), forward, len(spec.used))
+    residual = _Model(
+        targets.shape[0], float(max_radius), spec.nuisances, forward, len(spec.used), spec.luma
+    )
     if solver is None:
         solver = default_solver(image.dtype)
     args = (image, depth, targets, sqrt_w, layout)

@@ -32,7 +32,7 @@ def start_lenses(
     base = np.asarray(base, np.float64)
     depth = np.asarray(depth, np.float64)
     if fcap is None:
-        spec = _Spec(tuple(free), (), base.shape[0], False)
+        spec = _Spec(tuple(free), (), base.shape[0])
         fcap = np.asarray(spec.layout(base, depth).fcap, np.float64)
     out = [base.copy()]
     finite = depth[np.isfinite(depth)]
@@ -236,7 +236,7 @@ def _next_starts(info, base: np.ndarray, y0s: _Arr, spec: _Spec, layout: _Layout
         th = np.concatenate([theta[best][None], theta], axis=0)
         return out, np.stack([_rows(t, base) for t in th])
     used = list(spec.used)
-    floor = np.asarray(theta_floor(layout, spec.exposure), np.float64)[used]
+    floor = np.asarray(theta_floor(layout, spec.nuisances), np.float64)[used]
     for i in np.argsort(loss):
         if i == best or not converged[i]:
             continue

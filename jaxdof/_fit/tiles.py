@@ -212,8 +212,8 @@ def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarra
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
     window = reduced_window(forward, rows0[:1], dep, tg.shape, q)
     spec = p.spec
-    model = _Model(spec.n_targets, window, spec.exposure, forward, len(spec.used))
-    y0 = pack(rows0[:1].astype(p.dtype), p.layout, spec.exposure)[0]
+    model = _Model(spec.n_targets, window, spec.nuisances, forward, len(spec.used), spec.luma)
+    y0 = pack(rows0[:1].astype(p.dtype), p.layout, spec.nuisances)[0]
     _, _, jac, _ = run_stage("restate", restate, model, y0, (im, dep, tg, sw, layout))
     return jacobian_information(jac, tg.shape, spec.used), q
 

@@ -1,0 +1,193 @@
+r"""What the camera does to the render before it is a photo: the nuisances and the encoding.
+
+A fit compares photo `t` with
+
+$$P_t(x) = E\Big(g_t\,V_t(x)\,\big[\mathcal{W}_t\,\mathrm{render}_t\big](x) + o_t\Big),$$
+
+each part the identity at its null value, and each fitted only where the photo needs it
+(`select.with_nuisances`):
+
+- **exposure** (`gain` `g_t`, 1; `offset` `o_t`, 0): a shutter, ISO or aperture change between
+  the shots, a black level;
+- **vignetting** (`vignetting_r2` `a_t`, `vignetting_r4` `b_t`, 0): a radial gain
+  `V_t = 1 + a_t rho^2 + b_t rho^4`, `rho` the distance from the frame's centre over its half
+  diagonal (1 in the corners), low order as natural `cos^4` falloff is
+  (`1 - 2 tan^2 + 3 tan^4 ...`); with the gain, `V_t(0) = 1`;
+- **registration** (`shift_x`, `shift_y`, `magnification` `m_t`, 0): photo pixel `x` sees the
+  render at `c + (x - c - s_t) / (1 + m_t)` (`c` the frame's centre): a tripod that moved a
+  fraction of a pixel, and focus breathing (a focus change scales the image). Shifts are in
+  units of the half diagonal (the same number on every pyramid level), reported in photo
+  pixels. The render is resampled with the separable Lanczos-3 kernel (Duchon 1979; weights
+  normalised to sum to 1, so it is the identity at integer shifts and keeps a uniform image
+  uniform): it passes nearly all of the band a pixel grid holds, where bilinear or cubic
+  interpolation would blur the fine detail of the in-focus parts, which a fit would take for
+  defocus.
+- **encoding** `E`: with `luma`, the sRGB-encoded luma `Y' = 0.299 R' + 0.587 G' + 0.114 B'`
+  (ITU-R BT.601, what JPEG's YCbCr keeps at full resolution; `R' = srgb(R)`, IEC 61966-2-1),
+  one channel: a camera JPEG stores colour at half resolution (4:2:0), so only its luma holds
+  the full-resolution blur. Without, the linear photo itself.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+
+#: The nuisances in their order in the parameter vector, and their parameters (per photo).
+NUISANCES: dict[str, tuple[str, ...]] = {
+    "exposure": ("gain", "offset"),
+    "vignetting": ("vignetting_r2", "vignetting_r4"),
+    "registration": ("shift_x", "shift_y", "magnification"),
+}
+#: Each parameter's null value (the camera adds nothing).
+NULL = {"gain": 1.0}
+#: Lanczos-3: taps at offsets -2 .. 3 from the floor of the source position.
+_TAPS = np.arange(-2, 4)
+_LUMA = (0.299, 0.587, 0.114)
+
+
+def canonical(nuisances) -> tuple[str, ...]:
+    """The nuisances named, in `NUISANCES` order; a `ValueError` for an unknown name."""
+    nuisances = set(nuisances)
+    unknown = nuisances - set(NUISANCES)
+    if unknown:
+        raise ValueError(f"unknown nuisance(s) {sorted(unknown)}; known: {list(NUISANCES)}")
+    return tuple(n for n in NUISANCES if n in nuisances)
+
+
+def half_diagonal(h: int, w: int) -> float:
+    """Half the frame's diagonal (pixels): the unit of `frame`'s coordinates."""
+    return 0.5 * float(np.hypot(h, w))
+
+
+def frame(h: int, w: int, dtype) -> tuple[Array, Array, float]:
+    """Pixel centres `(v (h,), u (w,))` in units of the half diagonal from the frame's centre,
+    and the half diagonal `R` (pixels)."""
+    r = half_diagonal(h, w)
+    v = (jnp.arange(h, dtype=dtype) + 0.5 - h / 2) / r
+    u = (jnp.arange(w, dtype=dtype) + 0.5 - w / 2) / r
+    return v, u, r
+
+
+def _lanczos3(frac: Array, taps: Array) -> Array:
+    """`sinc(x) sinc(x / 3)` at `x = frac - taps` on `|x| < 3`, 0 outside: continuous with a
+    continuous derivative. `sin(pi x) = (-1)^taps sin(pi frac)` is taken from the fraction, so
+    that at `frac = 0` every tap but the centre's is exactly 0 (the identity, bit for bit)."""
+    x = frac[:, None] - taps[None, :]
+    sign = jnp.where(taps % 2 == 0, 1.0, -1.0).astype(frac.dtype)
+    safe = jnp.where(x == 0, 1, x)  # no 0/0 in the branch `where` drops (its gradient is kept)
+    s1 = sign[None, :] * jnp.sin(jnp.pi * frac)[:, None] / (jnp.pi * safe)
+    s3 = jnp.sin(jnp.pi * safe / 3) / (jnp.pi * safe / 3)
+    return jnp.where(x == 0, 1, jnp.where(jnp.abs(x) < 3, s1 * s3, 0))
+
+
+def _resample(img: Array, pos: Array, axis: int) -> Array:
+    """`img` `(H, W, C)` read at source positions `pos` (pixels, centres at integers) along
+    `axis` (0 rows, 1 columns) with normalised Lanczos-3 weights; taps past the edge repeat the
+    edge pixel (the border band leaves those photo pixels out of the fit)."""
+    n = img.shape[axis]
+    base = jnp.floor(jax.lax.stop_gradient(pos))
+    taps = jnp.asarray(_TAPS, pos.dtype)
+    idx = base[:, None] + taps[None, :]
+    wts = _lanczos3(pos - base, taps)
+    wts = wts / jnp.sum(wts, axis=1, keepdims=True)
+    idx = jnp.clip(idx, 0, n - 1).astype(jnp.int32)
+    taken = jnp.take(img, idx, axis=axis)  # axis 0: (o, k, W, C); axis 1: (H, o, k, C)
+    if axis == 0:
+        return jnp.einsum("ok,okwc->owc", wts.astype(img.dtype), taken)
+    return jnp.einsum("ok,hokc->hoc", wts.astype(img.dtype), taken)
+
+
+def register(img: Float[Array, "h w c"], shift_x, shift_y, magnification) -> Array:
+    """The photo of a camera whose image is `img` magnified by `1 + m` about the frame's centre
+    and shifted by `(shift_x, shift_y)` (half diagonals): pixel `x` reads `img` at
+    `c + (x - c - s) / (1 + m)`. Separable, as the map is, one axis at a time."""
+    h, w = img.shape[:2]
+    v, u, r = frame(h, w, img.dtype)
+    # Each pixel's index plus its displacement `-(s + m x) / (1 + m)` (half diagonals, times
+    # `R` in pixels): exactly the index at the null values, so the identity is exact there.
+    rows = jnp.arange(h, dtype=img.dtype) - (shift_y + magnification * v) / (1 + magnification) * r
+    cols = jnp.arange(w, dtype=img.dtype) - (shift_x + magnification * u) / (1 + magnification) * r
+    return _resample(_resample(img, rows, 0), cols, 1)
+
+
+def vignette(h: int, w: int, a2, a4, dtype) -> Float[Array, "h w 1"]:
+    """The radial gain `1 + a2 rho^2 + a4 rho^4` (`rho` over the half diagonal)."""
+    v, u, _ = frame(h, w, dtype)
+    rho2 = v[:, None] ** 2 + u[None, :] ** 2
+    return (1 + a2 * rho2 + a4 * rho2 * rho2)[..., None]
+
+
+def srgb_encode(x: Array) -> Array:
+    """The sRGB transfer curve (IEC 61966-2-1), extended linearly below 0 and by its power law
+    above 1; its derivative is finite everywhere."""
+    hi = jnp.maximum(x, 0.0031308)  # keeps the power's argument (and its derivative) finite
+    return jnp.where(x <= 0.0031308, 12.92 * x, 1.055 * hi ** (1 / 2.4) - 0.055)
+
+
+def luma(x: Float[Array, "*s 3"]) -> Float[Array, "*s 1"]:
+    """The sRGB-encoded luma `Y'` (BT.601 weights) of linear RGB, keeping a channel axis."""
+    e = srgb_encode(x)
+    return (_LUMA[0] * e[..., :1] + _LUMA[1] * e[..., 1:2] + _LUMA[2] * e[..., 2:3]).astype(x.dtype)
+
+
+def luma_np(x: np.ndarray) -> np.ndarray:
+    """`luma` in numpy (targets are prepared on the host)."""
+    return np.asarray(luma(jnp.asarray(x)))
+
+
+def camera(
+    raw: Float[Array, "t h w *c"],
+    params: dict[str, Array],
+    nuisances: tuple[str, ...],
+    is_luma: bool,
+) -> Array:
+    """The photos `(T, H, W[, C])` (one channel with `luma`) from the renders `raw`, with the
+    fitted `nuisances`' parameters `params` (name -> `(T,)`); every other part at its null."""
+    grey = raw.ndim == 3
+    x = raw[..., None] if grey else raw
+    _, h, w, _ = x.shape
+
+    def one(img, p):
+        if "registration" in nuisances:
+            img = register(img, p["shift_x"], p["shift_y"], p["magnification"])
+        if "vignetting" in nuisances:
+            img = img * vignette(h, w, p["vignetting_r2"], p["vignetting_r4"], img.dtype)
+        if "exposure" in nuisances:
+            img = p["gain"] * img + p["offset"]
+        return img
+
+    names = [n for k in nuisances for n in NUISANCES[k]]
+    x = jax.vmap(one)(x, {n: params[n] for n in names}) if names else x
+    if is_luma:
+        return luma(x)
+    return x[..., 0] if grey else x
+
+
+def chroma_detail(photo: np.ndarray) -> float:
+    r"""How much colour detail at the pixel scale a colour photo has, relative to its luma's:
+    the energy of the second differences `[1, -2, 1]` (both axes) of the sRGB-encoded chroma
+    `Cb, Cr` over that of the luma `Y'`. A camera JPEG's chroma, stored at half resolution and
+    interpolated, has almost none (measured in `fits/captures.py`); a linear or 4:4:4 photo keeps
+    its scene's colour detail and its noise (white noise in R, G, B puts about 0.9 of the luma's
+    energy in each chroma channel). `nan` for a grey photo."""
+    x = np.asarray(photo, np.float64)
+    if x.ndim != 3 or x.shape[-1] != 3 or min(x.shape[:2]) < 3:
+        return float("nan")
+    e = np.asarray(srgb_encode(jnp.asarray(x)))
+    y = e @ np.asarray(_LUMA)
+    cb = e @ np.array([-0.168736, -0.331264, 0.5])
+    cr = e @ np.array([0.5, -0.418688, -0.081312])
+
+    def energy(c):
+        d2x = c[:, :-2] - 2 * c[:, 1:-1] + c[:, 2:]
+        d2y = c[:-2] - 2 * c[1:-1] + c[2:]
+        return float(np.sum(d2x**2) + np.sum(d2y**2))
+
+    luma_energy = energy(y)
+    if luma_energy <= 0:
+        return float("nan")
+    return (energy(cb) + energy(cr)) / luma_energy
