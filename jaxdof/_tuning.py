@@ -376,10 +376,10 @@ SELECT_CHI2 = 10.0
 #: of a two-slope scene (sigma 1 % of the mean) the statistic was 0.8-2.3 on 2 dof without an
 #: exposure error and 4395 with the photo at 0.85 of the exposure.
 SELECT_ALPHA = 1e-3
-#: ... and only where fitting it would move the lens by more than this many of its reported
-#: standard errors (the score regression's Gauss-Newton step; `select.with_nuisances`). Without
-#: it, on the clean ray-traced slant (`fits/captures.py`), the score test alone fitted a
-#: registration (score 555 on 3 dof) that came out at 0.01 px and 0.03 %.
+#: ... and kept only where fitting it moves the lens by more than this many of its reported
+#: standard errors (`select.with_nuisances`). Without it, on the clean ray-traced slant
+#: (`fits/captures.py`), the score test alone fitted a registration (score 555 on 3 dof) that
+#: came out at 0.01 px and 0.03 %.
 SELECT_MOVE = 1.0
 
 #: A colour photo is compared in its sRGB luma when its colour detail at the pixel scale

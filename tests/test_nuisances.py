@@ -87,7 +87,7 @@ def test_exposure_score_is_the_projection_on_the_nuisance_columns():
     fitted = x @ np.linalg.lstsq(x, r, rcond=None)[0]
     want = (fitted @ fitted) / ((r @ r) / (r.size - len(spec.used)))
     extra = nuisance_columns(model, y, args)["exposure"]
-    got = float(score_statistic(jnp.asarray(r), jnp.asarray(jac), extra, args, spec)[0])
+    got = float(score_statistic(jnp.asarray(r), jnp.asarray(jac), extra, args, spec))
     np.testing.assert_allclose(got, want, rtol=1e-6)
 
 
@@ -125,7 +125,8 @@ def _camera(clean, nuisances, **params):
 def test_register_is_the_identity_at_null_and_shifts_band_limited_detail_exactly():
     """At zero shift and magnification `register` returns the image unchanged; a shift of
     0.4 px of a sinusoid at a quarter of the sampling rate comes out as the sinusoid shifted,
-    to 1 % of its amplitude (the Lanczos-3 kernel, away from the edges)."""
+    to 0.5 % of its amplitude (the order-6 Lanczos kernel, away from the edges: measured
+    0.27 %)."""
     x = np.arange(64, dtype=np.float64)
     img = np.sin(2 * np.pi * 0.25 * x)[None, :, None].repeat(8, 0)
     same = np.asarray(photo.register(jnp.asarray(img), 0.0, 0.0, 0.0))
@@ -133,7 +134,7 @@ def test_register_is_the_identity_at_null_and_shifts_band_limited_detail_exactly
     r = photo.half_diagonal(8, 64)
     moved = np.asarray(photo.register(jnp.asarray(img), 0.4 / r, 0.0, 0.0))
     want = np.sin(2 * np.pi * 0.25 * (x - 0.4))
-    np.testing.assert_allclose(moved[4, 8:-8, 0], want[8:-8], atol=0.01)
+    np.testing.assert_allclose(moved[4, 16:-16, 0], want[16:-16], atol=0.005)
 
 
 def _noisy(clean, sigma, seed=1):
@@ -159,8 +160,8 @@ def test_registration_is_fitted_where_the_photo_is_shifted_and_magnified():
     np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
     np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
     assert "shift_x" in fit.stderr and "registration: fitted" in fit.summary()
-    # The band grows by the registration's reach (0.7 px + 1 % of the half diagonal + 3 taps).
-    assert int(fit.border) >= 4
+    # The band grows by the registration's reach (0.6 px + 1 % of the half diagonal + 6 taps).
+    assert int(fit.border) >= 7
     still = jaxdof.fit_lens(image, depth, _noisy(clean, 0.005), _lens(4.0, 2.0, 64))
     assert not still.nuisances["registration"]["fitted"], still.nuisances
 
@@ -197,8 +198,6 @@ def test_vignetting_and_registration_forced():
         assert on.nuisances[name]["fitted"] and on.nuisances[name]["forced"], on.nuisances
     np.testing.assert_allclose(on.nuisances["registration"]["values"]["shift_x"][0], 0, atol=1e-3)
     np.testing.assert_allclose(float(on.lenses.f_number[0]), 2.8, rtol=1e-3)
-    with pytest.raises(ValueError, match="registration must be None"):
-        jaxdof.fit_lens(image, depth, clean, _lens(4.0, 2.0), registration="yes")
 
 
 def test_nuisance_columns_are_the_derivatives_of_the_model_with_the_nuisance():
@@ -247,7 +246,10 @@ def test_residual_gradients_with_every_nuisance_and_luma():
     r = photo.half_diagonal(12, 14)
     extra = jnp.asarray([0.95, 0.01, -0.1, 0.02, 0.3 / r, -0.2 / r, 0.01])
     y = model.pack(jnp.asarray(off), lay).at[3:].set(extra)
-    check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"))
+    # A step of 1e-6: the resampling kernel is C1 where a source position crosses a pixel (its
+    # taps change there), so finite differences of the default step see its second derivative's
+    # jump wherever the 1 % magnification puts a position within a step of a crossing.
+    check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"), eps=1e-6)
 
 
 def _jpeg(linear, subsampling):

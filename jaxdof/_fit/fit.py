@@ -29,7 +29,7 @@ from .._upsample import upsample_depth
 from .forward import AbstractForwardModel
 from .layout import LENS_FIELDS, nuisance_names, pack, theta_floor
 from .lm import bounded
-from .photo import NUISANCES, canonical, chroma_detail, half_diagonal
+from .photo import _LANCZOS, NUISANCES, canonical, chroma_detail, half_diagonal
 from .prepare import (
     Problem,
     _check_names,
@@ -769,9 +769,9 @@ def fit_lens(
       (`jaxdof/_fit/photo.py`): a gain and an offset; a radial gain `1 + a rho^2 + b rho^4`
       (`rho` 1 in the corners); a shift and a magnification about the centre (a tripod that
       moved, focus breathing; the band left out grows by its reach). `None` (default): fitted
-      where the photo needs it, by a score test at the fit without it (level `SELECT_ALPHA`)
-      whose Gauss-Newton step would move the lens by more than `SELECT_MOVE` of its standard
-      errors (`select.with_nuisances`); `True` fits it, `False` does not. Vignetting and
+      where the photo needs it: a score test at the fit without it (level `SELECT_ALPHA`) asks
+      for it, and fitting it moves the lens by more than `SELECT_MOVE` of its standard errors
+      (`select.with_nuisances`); `True` fits it, `False` does not. Vignetting and
       registration need the whole frame (`tiles=None` for a large photo). Each decision, the
       test and the fitted values (shifts in photo pixels) are in `FitResult.nuisances`.
     - `luma`: compare colour photos in their sRGB luma `Y'` (the render encoded as the photo
@@ -1085,14 +1085,14 @@ def _fit_treated(
 
 
 # The registration a fit allows for before it has one (photo pixels): a shift of up to 2 px and
-# a magnification of up to 2 %, the Lanczos kernel's 3 taps added (`_registration_reach`).
+# a magnification of up to 2 %, the resampling kernel's reach added (`_registration_reach`).
 _REGISTRATION_SHIFT = 2.0
 _REGISTRATION_MAGNIFICATION = 0.02
 
 
 def _registration_reach(photo, values=None) -> int:
     """The photo pixels along the edges whose registered value reads the render past its edge
-    (or its taps): `|s| + |m| R` (`R` the half diagonal) and the kernel's 3 taps, for the fitted
+    (or its taps): `|s| + |m| R` (`R` the half diagonal) and the kernel's reach, for the fitted
     `values` of every photo, else for the largest registration allowed for before a fit."""
     r = half_diagonal(photo[0], photo[1])
     if values is None:
@@ -1101,7 +1101,7 @@ def _registration_reach(photo, values=None) -> int:
         sx, sy = (np.abs(np.asarray(values[k], np.float64)) * r for k in ("shift_x", "shift_y"))
         shift = float(np.max(np.maximum(sx, sy)))
         mag = float(np.max(np.abs(np.asarray(values["magnification"], np.float64))))
-    return int(math.ceil(shift + mag * r)) + 3
+    return int(math.ceil(shift + mag * r)) + _LANCZOS
 
 
 def _nuisance_entries(info, spec, photo, tiled: bool) -> dict:
@@ -1109,7 +1109,6 @@ def _nuisance_entries(info, spec, photo, tiled: bool) -> dict:
     photo pixels for shifts) and the score test of it at this fit (where not fitted; untested on
     tiles for the ones that depend on the whole frame)."""
     scores = np.asarray(info.get("nuisance_scores", np.full(len(NUISANCES), np.nan)))
-    moves = np.asarray(info.get("nuisance_moves", np.full(len(NUISANCES), np.nan)))
     r = half_diagonal(photo[0], photo[1])
     out = {}
     for k, (name, params) in enumerate(NUISANCES.items()):
@@ -1123,7 +1122,6 @@ def _nuisance_entries(info, spec, photo, tiled: bool) -> dict:
             "score": score,
             "dof": dof,
             "p_value": float(scipy.stats.chi2.sf(score, dof)) if math.isfinite(score) else math.nan,
-            "move": float(moves[k]) if math.isfinite(score) else math.nan,
         }
         if fitted:
             entry["values"] = {

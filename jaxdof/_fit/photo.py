@@ -17,11 +17,12 @@ each part the identity at its null value, and each fitted only where the photo n
   render at `c + (x - c - s_t) / (1 + m_t)` (`c` the frame's centre): a tripod that moved a
   fraction of a pixel, and focus breathing (a focus change scales the image). Shifts are in
   units of the half diagonal (the same number on every pyramid level), reported in photo
-  pixels. The render is resampled with the separable Lanczos-3 kernel (Duchon 1979; weights
-  normalised to sum to 1, so it is the identity at integer shifts and keeps a uniform image
-  uniform): it passes nearly all of the band a pixel grid holds, where bilinear or cubic
-  interpolation would blur the fine detail of the in-focus parts, which a fit would take for
-  defocus.
+  pixels. The render is resampled with the separable Lanczos kernel of order 6 (12 taps;
+  Duchon 1979; weights normalised to sum to 1, so it is the identity at integer positions and
+  keeps a uniform image uniform): a sinusoid of up to a quarter of the sampling rate shifted
+  by 0.1-0.5 px comes out within 0.34 % of its amplitude (order 3: 2.3 %; 0.35 cycles/px: 1.9 %
+  against 14 %), where bilinear or cubic interpolation would blur the fine detail of the
+  in-focus parts, which a fit would take for defocus.
 - **encoding** `E`: with `luma`, the sRGB-encoded luma `Y' = 0.299 R' + 0.587 G' + 0.114 B'`
   (ITU-R BT.601, what JPEG's YCbCr keeps at full resolution; `R' = srgb(R)`, IEC 61966-2-1),
   one channel: a camera JPEG stores colour at half resolution (4:2:0), so only its luma holds
@@ -44,8 +45,10 @@ NUISANCES: dict[str, tuple[str, ...]] = {
 }
 #: Each parameter's null value (the camera adds nothing).
 NULL = {"gain": 1.0}
-#: Lanczos-3: taps at offsets -2 .. 3 from the floor of the source position.
-_TAPS = np.arange(-2, 4)
+#: The Lanczos kernel's order `a`: taps at offsets `-a + 1 .. a` from the floor of the source
+#: position.
+_LANCZOS = 6
+_TAPS = np.arange(-_LANCZOS + 1, _LANCZOS + 1)
 _LUMA = (0.299, 0.587, 0.114)
 
 
@@ -72,27 +75,28 @@ def frame(h: int, w: int, dtype) -> tuple[Array, Array, float]:
     return v, u, r
 
 
-def _lanczos3(frac: Array, taps: Array) -> Array:
-    """`sinc(x) sinc(x / 3)` at `x = frac - taps` on `|x| < 3`, 0 outside: continuous with a
+def _lanczos(frac: Array, taps: Array) -> Array:
+    """`sinc(x) sinc(x / a)` at `x = frac - taps` on `|x| < a`, 0 outside: continuous with a
     continuous derivative. `sin(pi x) = (-1)^taps sin(pi frac)` is taken from the fraction, so
     that at `frac = 0` every tap but the centre's is exactly 0 (the identity, bit for bit)."""
     x = frac[:, None] - taps[None, :]
     sign = jnp.where(taps % 2 == 0, 1.0, -1.0).astype(frac.dtype)
     safe = jnp.where(x == 0, 1, x)  # no 0/0 in the branch `where` drops (its gradient is kept)
     s1 = sign[None, :] * jnp.sin(jnp.pi * frac)[:, None] / (jnp.pi * safe)
-    s3 = jnp.sin(jnp.pi * safe / 3) / (jnp.pi * safe / 3)
-    return jnp.where(x == 0, 1, jnp.where(jnp.abs(x) < 3, s1 * s3, 0))
+    a = _LANCZOS
+    s3 = jnp.sin(jnp.pi * safe / a) / (jnp.pi * safe / a)
+    return jnp.where(x == 0, 1, jnp.where(jnp.abs(x) < a, s1 * s3, 0))
 
 
 def _resample(img: Array, pos: Array, axis: int) -> Array:
     """`img` `(H, W, C)` read at source positions `pos` (pixels, centres at integers) along
-    `axis` (0 rows, 1 columns) with normalised Lanczos-3 weights; taps past the edge repeat the
+    `axis` (0 rows, 1 columns) with normalised Lanczos weights; taps past the edge repeat the
     edge pixel (the border band leaves those photo pixels out of the fit)."""
     n = img.shape[axis]
     base = jnp.floor(jax.lax.stop_gradient(pos))
     taps = jnp.asarray(_TAPS, pos.dtype)
     idx = base[:, None] + taps[None, :]
-    wts = _lanczos3(pos - base, taps)
+    wts = _lanczos(pos - base, taps)
     wts = wts / jnp.sum(wts, axis=1, keepdims=True)
     idx = jnp.clip(idx, 0, n - 1).astype(jnp.int32)
     taken = jnp.take(img, idx, axis=axis)  # axis 0: (o, k, W, C); axis 1: (H, o, k, C)

@@ -43,9 +43,7 @@ def nuisance_words(entry: dict) -> str:
         return how
     why = "the photo asked for it" if entry.get("chosen") else "the photo did not ask for it"
     move = entry.get("move")
-    moves = (
-        f", moves the lens {float(move):.2g} se" if move is not None and math.isfinite(move) else ""
-    )
+    moves = f"; fitted, it moved the lens {float(move):.2g} se" if move is not None else ""
     return (
         f"{how} ({why}: score {float(score):.3g} on {entry.get('dof')} dof, p = {float(p):.2g}"
         f"{moves})"
@@ -283,8 +281,9 @@ class FitResult(eqx.Module):
       `solve_lens`, which models what it is given.
     - `nuisances`: what `fit_lens` decided about what the camera adds (`"exposure"`,
       `"vignetting"`, `"registration"`, per photo): `{"fitted", "forced", "chosen", "score",
-      "dof", "p_value", "move"}`, the score test at the fit without it and how far (in standard
-      errors) it would move the lens (`chosen`: turned on by the photo), and `"values"` where
+      "dof", "p_value", "move"}`: the score test at the fit without it and, where that asked
+      for it, how far (in standard errors) fitting it moved the lens (`chosen`: kept), and
+      `"values"` where
       fitted (shifts in photo pixels); and `"luma"`: whether the photos were compared in their
       luma, with the colour detail that decided it. `None` from `solve_lens`.
 

@@ -44,7 +44,7 @@ from .result import RESULTS, FitResult, code_of
 SELECT_CHI2 = _tuning.SELECT_CHI2
 #: The level of the score test that turns a nuisance on (`with_nuisances`).
 SELECT_ALPHA = _tuning.SELECT_ALPHA
-#: How far (in the lens's reported standard errors) fitting a nuisance must move the lens.
+#: How far (in its reported standard errors) fitting a nuisance must move the lens to stay.
 SELECT_MOVE = _tuning.SELECT_MOVE
 
 # Statuses whose lens is worth comparing: a converged fit, whatever its verdict.
@@ -171,25 +171,23 @@ def with_nuisances(
 
     **The rule.** At a fit without a nuisance, the score (Lagrange multiplier) statistic of its
     parameters (`solve.nuisance_scores`, chi-square with `q T` degrees of freedom where the
-    photo has none of it; no refit needed) is tested at level `SELECT_ALPHA`, and the same
-    regression's Gauss-Newton step says how far the nuisance would move the lens, in its
-    reported standard errors (inflated by the tiles' spread where the model lacks something):
-    a nuisance is needed where the test rejects *and* it moves the lens by more than
-    `SELECT_MOVE` of them. (A real photo rejects any model at its noise level, and a nuisance
-    that the test finds but that leaves the lens where it is changes nothing a user reads.)
-    Forward selection: the most significant needed one is fitted (solved again from the lens found, or
-    from the caller's starts where that fit did not succeed), the others tested again at that
-    fit, until none rejects. A score test keeps the default fit's cost where the photo needs
-    nothing (Rao 1948, Buse 1982)."""
+    photo has none of it; no refit) is tested at level `SELECT_ALPHA`. Where it rejects, the
+    fit with the nuisance is solved (from the lens found) and kept where it moves the lens by
+    more than `SELECT_MOVE` of its standard errors (as it reports them: inflated to the tiles'
+    spread where the model still lacks something): a real photo rejects any model at its noise
+    level, and a nuisance that then leaves the lens where it was changes nothing a user reads.
+    Forward selection: the most significant rejection first, the others tested again at the
+    fit kept, until none is left. A score test keeps the default fit's cost where the photo
+    asks for nothing (Rao 1948, Buse 1982)."""
     entries = {k: dict(v) for k, v in (result.nuisances or {}).items()}
     for name, value in asked.items():
         entries.setdefault(name, {"fitted": bool(value)})
         entries[name].update(forced=value is not None, chosen=False)
-    # A fit down to the float rounding (a render of the photo's own lens) leaves nothing for a
-    # nuisance to explain, and its residual is the rounding, which is proportional to the
-    # values, so along the gain column: no test there (the floor of `prefers`).
-    refused: set[str] = set()
+    tried: set[str] = set()
     for _ in range(len(asked)):
+        # A fit down to the float rounding (a render of the photo's own lens) leaves nothing
+        # for a nuisance to explain, and its residual is the rounding, which is proportional to
+        # the values, so along the gain column: no test there (the floor of `prefers`).
         if float(np.asarray(result.sigma)) < rounding:
             for name in asked:
                 entries[name]["exact"] = not entries[name].get("chosen")
@@ -198,10 +196,9 @@ def with_nuisances(
             k
             for k, value in asked.items()
             if value is None
-            and k not in refused
+            and k not in tried
             and not entries[k].get("fitted")
             and entries[k].get("p_value", math.nan) < SELECT_ALPHA
-            and entries[k].get("move", math.nan) > SELECT_MOVE
         ]
         if _status(result) == "other" or not candidates:
             break
@@ -210,11 +207,16 @@ def with_nuisances(
             candidates,
             key=lambda k: (entries[k]["p_value"], -entries[k]["score"] / entries[k]["dof"]),
         )
+        tried.add(pick)
         on = tuple(k for k in asked if entries[k].get("fitted") or k == pick)
+        start = {"init": result.lenses, "starts": 1, "pyramid": None}
         try:
-            refit = fit(**_from(result, {**call, **_as_chosen(result, call), "nuisances": on}))
+            refit = fit(**{**call, **_as_chosen(result, call), **start, "nuisances": on})
         except ValueError:
-            refused.add(pick)
+            continue
+        move = lens_move(result, refit)
+        entries[pick]["move"] = move
+        if _status(refit) not in ("successful", "inconsistent") or not move > SELECT_MOVE:
             continue
         t0, t1 = result.treatment, refit.treatment
         assert t0 is not None and t1 is not None
@@ -222,13 +224,30 @@ def with_nuisances(
         chosen = {k for k in asked if entries[k].get("chosen")} | {pick}
         tested = {k: dict(v) for k, v in (refit.nuisances or {}).items()}
         for name, value in asked.items():
-            keep = {key: entries[name].get(key) for key in ("score", "dof", "p_value", "move")}
             tested[name].update(forced=value is not None, chosen=name in chosen)
-            if name in chosen:  # the test that chose it, at the fit without it
-                tested[name].update(keep)
+            if name in chosen or name in tried:  # the test that chose it, at the fit without it
+                keep = ("score", "dof", "p_value", "move")
+                tested[name].update({k: entries[name][k] for k in keep if k in entries[name]})
         result, entries = dataclasses.replace(refit, treatment=treatment), tested
         call = {**call, "nuisances": on}
     return dataclasses.replace(result, nuisances=entries)
+
+
+def lens_move(before: FitResult, after: FitResult) -> float:
+    """How far `after`'s lens is from `before`'s, in `after`'s standard errors: the largest over
+    the free fields and targets (the focus as its power, which is finite at infinity)."""
+    moves = [0.0]
+    for name, se in after.stderr.items():
+        if name == "focus_distance":
+            a, b = (1 / np.asarray(r.lenses.focus_distance, np.float64) for r in (after, before))
+            se = after.focus_power_stderr
+        elif name in ("focal_length", "f_number"):
+            a, b = (np.asarray(getattr(r.lenses, name), np.float64) for r in (after, before))
+        else:
+            continue
+        z = np.abs(a - b) / np.maximum(np.asarray(se, np.float64), np.finfo(np.float64).tiny)
+        moves.append(float(np.nanmax(z)))
+    return max(moves)
 
 
 def _from(result: FitResult, call: dict) -> dict:

@@ -333,15 +333,13 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
     stats = _statistics_at(residual, jac, g, theta, args, spec)
     check = _check_model(residual, jac, args, spec, band)
     result = _assemble(spec, model, (y, status, num_steps, theta), stats, check, args, single)
-    scores, moves = nuisance_scores(model, y, residual, jac, args, spec)
+    scores = nuisance_scores(model, y, residual, jac, args, spec)
     info = dict(
         status=result.status,
         condition=stats["condition"],
         sigma=stats["sigma"],
         variance=stats["variance"],
         nuisance_scores=scores,
-        # Over the tiles' inflation: the lens's errors as reported, which cover its model error.
-        nuisance_moves=moves / jnp.where(jnp.isfinite(check["inflation"]), check["inflation"], 1),
         nuisance_values=model.nuisance_params(y),
     )
     return result, info
@@ -371,30 +369,27 @@ def nuisance_columns(model: _Model, y, args) -> dict[str, Array]:
     return out
 
 
-def nuisance_scores(model: _Model, y, residual, jac, args, spec: _Spec) -> tuple[Array, Array]:
-    """`score_statistic` of every nuisance of `photo.NUISANCES` at this fit: the statistics
-    `(K,)` and the lens moves `(K,)`; 0 for the fitted ones."""
+def nuisance_scores(model: _Model, y, residual, jac, args, spec: _Spec) -> Array:
+    """`score_statistic` of every nuisance of `photo.NUISANCES` at this fit, `(K,)`; 0 for the
+    fitted ones. Chi-square with `q T` degrees of freedom (`q` the nuisance's parameters) where
+    the photo has none of it."""
     columns = nuisance_columns(model, y, args)
     zero = jnp.zeros((), residual.dtype)
-    out = [
-        score_statistic(residual, jac, columns[k], args, spec) if k in columns else (zero, zero)
-        for k in NUISANCES
-    ]
-    return jnp.stack([s for s, _ in out]), jnp.stack([m for _, m in out])
+    return jnp.stack(
+        [
+            score_statistic(residual, jac, columns[k], args, spec) if k in columns else zero
+            for k in NUISANCES
+        ]
+    )
 
 
-def score_statistic(residual, jac, extra, args, spec: _Spec) -> tuple[Array, Array]:
+def score_statistic(residual, jac, extra, args, spec: _Spec) -> Array:
     r"""The score (Lagrange multiplier) statistic for nuisance columns `extra` `(n, q)` (the
     derivatives of the residual with respect to parameters the fit lacks, at their null) at a
     fit without them: `LM = ||P_X r||^2 / sigma^2`, `P_X` the projection onto the columns of the
     fitted parameters' Jacobian and `extra`, `sigma^2 = ||r||^2 / (n - p)`. Where the photo
     has none of that nuisance it is chi-square with `q` degrees of freedom (Rao 1948; Buse 1982,
-    "The likelihood ratio, Wald, and Lagrange multiplier tests"), and it needs no refit.
-
-    And how far the lens would move with it: the same regression is one Gauss-Newton step of
-    the fit with the nuisance from this solution, whose lens part, over each lens parameter's
-    standard error at this fit (`sigma^2 (X_0^T X_0)^{-1}`, `X_0` the fitted columns), is the
-    second value (the largest over the lens parameters; invariant to their units)."""
+    "The likelihood ratio, Wald, and Lagrange multiplier tests"), and it needs no refit."""
     _, _, targets, sqrt_w, _ = args
     sw = jnp.broadcast_to(sqrt_w, targets.shape)
     x = jnp.concatenate([jac[:, jnp.asarray(spec.used)], extra.astype(jac.dtype)], axis=1)
@@ -406,15 +401,7 @@ def score_statistic(residual, jac, extra, args, spec: _Spec) -> tuple[Array, Arr
     fitted = xs @ beta
     n = jnp.sum(sw > 0).astype(r.dtype)
     sigma2 = (r @ r) / jnp.maximum(n - len(spec.used), 1)
-    tiny = jnp.finfo(r.dtype).tiny
-    score = ((fitted @ fitted) / jnp.maximum(sigma2, tiny)).astype(residual.dtype)
-    p = len(spec.used)
-    n_lens = p - len(nuisance_names(spec.nuisances)) * spec.n_targets
-    x0 = xs[:, :p]
-    inv = jnp.linalg.pinv(x0.T @ x0, hermitian=True)
-    se = jnp.sqrt(jnp.maximum(sigma2 * jnp.diag(inv), tiny))[:n_lens]
-    move = jnp.max(jnp.abs(beta[:n_lens]) / se) if n_lens else jnp.zeros((), r.dtype)
-    return score, move.astype(residual.dtype)
+    return ((fitted @ fitted) / jnp.maximum(sigma2, jnp.finfo(r.dtype).tiny)).astype(residual.dtype)
 
 
 @eqx.filter_jit
