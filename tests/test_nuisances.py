@@ -287,3 +287,23 @@ def test_camera_jpeg_is_compared_in_luma():
     forced = jaxdof.fit_lens(image, depth, clean, _lens(4.0, 2.0, 64), luma=True)
     assert forced.nuisances["luma"]["fitted"] and forced.nuisances["luma"]["forced"]
     np.testing.assert_allclose(float(forced.lenses.f_number[0]), 2.8, rtol=1e-3)
+
+
+def test_the_cause_of_an_inconsistency_is_named_from_the_residual_pattern():
+    """`fit._cause`: a residual growing towards the corners names vignetting; one along depth
+    edges names occlusion; one alike everywhere names what every pixel shares."""
+    import types
+
+    from jaxdof._fit.fit import _cause
+
+    n = 8
+    c = (np.arange(n) + 0.5) / n - 0.5
+    rho2 = np.add.outer(c**2, c**2)
+    flat = types.SimpleNamespace(d=np.full((32, 32), 2.0))
+    assert "vignetting" in _cause(1 + 20 * rho2, flat)
+    stepped = types.SimpleNamespace(d=np.where(np.arange(32) < 12, 1.5, 4.0)[None].repeat(32, 0))
+    along = np.ones((n, n))
+    along[:, 2:4] = 30.0  # the columns that hold the edge at x = 12 of 32
+    assert "depth edges" in _cause(along, stepped)
+    rng = np.random.default_rng(0)
+    assert "alike" in _cause(1 + 0.1 * rng.random((n, n)), flat)

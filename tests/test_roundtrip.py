@@ -231,3 +231,37 @@ def test_cli_fit_with_an_8bit_photo_and_a_16bit_depth_png_with_holes(tmp_path):
     assert (
         abs(fitted["f_number"] / 2.8 - 1) < 0.01 and abs(fitted["focus_distance"] / 2.5 - 1) < 0.01
     )
+
+
+def test_cli_fit_with_a_camera_jpeg_and_a_16bit_depth_png_with_holes(tmp_path):
+    """A camera JPEG (quality 90, colour at half resolution, 4:2:0) of an 8-bit sRGB image's
+    render, with a 16-bit depth PNG holding zeros: `jaxdof fit` reads the JPEG's header, compares
+    the luma (the full-resolution part of the file), exits 0 and finds the lens within 2 %."""
+    import imageio.v3 as iio
+    from PIL import Image
+
+    from jaxdof._io import linear_to_srgb, srgb_to_linear
+
+    image, depth = _scene("step", 40, 56, np.float32)
+    code = np.round(255 * linear_to_srgb(np.clip(image, 0, 1))).astype(np.uint8)
+    iio.imwrite(tmp_path / "sharp.png", code)
+    truth = _lens(2.8, 2.5, 56)
+    sharp = srgb_to_linear(code / 255.0).astype(np.float32)  # what the file holds
+    photo = np.asarray(jaxdof.render(sharp, depth, truth))
+    jpeg = np.round(255 * linear_to_srgb(np.clip(photo, 0, 1))).astype(np.uint8)
+    Image.fromarray(jpeg).save(tmp_path / "photo.jpg", quality=90, subsampling=2)
+    mm = np.round(depth * 1000).astype(np.uint16)
+    mm[10:13, 8:12] = 0
+    iio.imwrite(tmp_path / "depth.png", mm)
+    out = io.StringIO()
+    argv = [str(tmp_path / n) for n in ("sharp.png", "depth.png", "photo.jpg")]
+    lens = ["--focal-length", "50mm", "--f-number", "4", "--focus", "2m", "--sensor-width", "4.8mm"]
+    with contextlib.redirect_stdout(out):
+        code = main(["fit", *argv, "--depth-scale", "1mm", *lens, "--json", "--quiet"])
+    assert code == 0, out.getvalue()
+    obj = json.loads(out.getvalue())
+    assert obj["success"] is True and obj["nuisances"]["luma"]["fitted"] is True
+    assert obj["nuisances"]["luma"]["forced"] is True  # from the file's header
+    fitted = obj["lenses"][0]
+    assert abs(fitted["f_number"] / 2.8 - 1) < 0.02, fitted
+    assert abs(fitted["focus_distance"] / 2.5 - 1) < 0.02, fitted

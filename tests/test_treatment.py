@@ -236,6 +236,14 @@ def test_depth_holes_are_filled_and_the_pixels_they_reach_left_out():
     np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=1e-4)
     with pytest.raises(ValueError, match="no data"):
         jaxdof.fit_lens(image, np.full_like(depth, np.nan), photo, start)
+    # Holes scattered over the whole frame, every pixel within a circle of one: the reach is
+    # halved until a quarter of the pixels is left, and the fit goes on (no exception).
+    scattered = depth.copy()
+    scattered[2::6, 3::7] = np.nan
+    fit = jaxdof.fit_lens(image, scattered, photo, start)
+    assert fit.treatment is not None and fit.treatment.depth_holes == scattered[2::6, 3::7].size
+    assert int(fit.pixels_used) > 0 and bool(fit.success), fit.message
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.02)
 
 
 @pytest.mark.parametrize("n", [8, 24, 64, 200])

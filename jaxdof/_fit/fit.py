@@ -22,6 +22,7 @@ import scipy.stats
 from jaxtyping import ArrayLike
 
 from .. import _tuning
+from .._corrections import depth_edges
 from .._filters import AbstractMethod
 from .._filters.common import is_concrete
 from .._lens import ThinLens
@@ -575,6 +576,59 @@ def _inconsistency_note(result: FitResult) -> str:
     )
 
 
+# How strongly the residual's map must follow a pattern (a correlation over its cells) to name
+# that pattern's cause (`_cause`), and the spread under which it is "everywhere alike".
+_PATTERN = 0.5
+_ALIKE = 2.0
+
+
+def _cause(cells: np.ndarray, p) -> str:
+    """The likely cause of a fit's inconsistency, from where its residual is large
+    (`solve.residual_map`, mean squared residual per cell of the photo): growing towards the
+    corners (vignetting, uneven illumination), along depth edges (occlusion the model does not
+    render), or everywhere alike (the aperture's shape, the photo's encoding, noise or a lens
+    the model does not know)."""
+    ok = np.isfinite(cells)
+    if ok.sum() < 4:
+        return "too few regions fitted to say where the photo differs from the model"
+    n = cells.shape[0]
+    centre = (np.arange(n) + 0.5) / n - 0.5
+    rho2 = np.add.outer(centre**2, centre**2)
+    edges = depth_edges(p.d).astype(np.float64)
+    h, w = edges.shape
+    rows = (np.arange(h) * n // h)[:, None] == np.arange(n)[None, :]
+    cols = (np.arange(w) * n // w)[:, None] == np.arange(n)[None, :]
+    edge_share = (rows.T @ edges @ cols) / np.maximum(rows.T @ np.ones_like(edges) @ cols, 1)
+
+    def corr(x):
+        a, b = np.log(cells[ok]), x[ok]
+        if np.std(a) == 0 or np.std(b) == 0:
+            return 0.0
+        return float(np.corrcoef(a, b)[0, 1])
+
+    radial, edgy = corr(rho2), corr(edge_share)
+    spread = float(np.nanmax(cells) / max(float(np.nanmedian(cells)), np.finfo(float).tiny))
+    if edgy > _PATTERN and edgy >= radial:
+        return (
+            f"the residual is largest along depth edges (correlation {edgy:.2f}): likely "
+            "occlusion the model renders differently (method=jaxdof.LocalOcclusion())"
+        )
+    if radial > _PATTERN:
+        return (
+            f"the residual grows towards the corners (correlation {radial:.2f}): likely "
+            "vignetting or uneven illumination (vignetting=True)"
+        )
+    if spread < _ALIKE:
+        return (
+            "the residual is alike over the photo: likely what every pixel shares, the "
+            "aperture's shape, the photo's encoding, or noise the model does not know"
+        )
+    return (
+        f"the residual is {spread:.3g}x its median in places without a radial or edge pattern: "
+        "likely a depth map that does not match the photo there, or a misregistration"
+    )
+
+
 def _verdict(run: _Run, result: FitResult, info, r_final, window, notes, allow_degenerate):
     """The final status (ambiguity and window found on the host), the notes, and the
     `ValueError` for a free set the data cannot determine (unless `allow_degenerate`)."""
@@ -583,6 +637,7 @@ def _verdict(run: _Run, result: FitResult, info, r_final, window, notes, allow_d
     code = code_of(info["status"])
     if code == _INCONSISTENT:
         notes.append(_inconsistency_note(result))
+        notes.append(_cause(np.asarray(info["residual_map"], np.float64), p))
     alt = _ambiguity(info, p) if code in (_SUCCESSFUL, _INCONSISTENT) else None
     if alt is not None:
         code = _AMBIGUOUS
@@ -999,9 +1054,11 @@ def _fit_treated(
         window = window_for(forward.max_circle(rows0, p.d), float(max(p.photo)))
     else:
         window = float(max_radius)
-    # The photo pixels that a depth hole's light reaches: the window's reach and the border's
-    # stencils (the border band of the window, `border_band`).
-    p, hole_pixels = leave_out_holes(p, float(forward.border_band(window)))
+    # The photo pixels that a depth hole's light reaches: the init lens's circles and the
+    # border's stencils (the border band of their window; the starts' window can be far
+    # larger: starts spread in diopters make large circles).
+    own = window_for(forward.max_circle(rows0[:1], p.d), float(max(p.photo)))
+    p, hole_pixels, _ = leave_out_holes(p, float(forward.border_band(min(own, window))))
     if p.holes is not None:
         holes = int(p.holes.sum())
         treatment = dataclasses.replace(treatment, depth_holes=holes, hole_pixels=hole_pixels)

@@ -206,25 +206,37 @@ def luma_targets(targets, sqrt_w):
     return y, jnp.min(sqrt_w, axis=-1, keepdims=True)
 
 
-def leave_out_holes(p: Problem, reach: float) -> tuple[Problem, int]:
-    """`p` with zero weight at the photo pixels within `reach` photo pixels (a circle and the
-    render's stencils) of a depth hole, and how many photo pixels that left out.
+# The share of the fitted photo pixels that the pixels near depth holes may take at most; beyond
+# it the reach is halved until it holds (`leave_out_holes`).
+_HOLES_KEEP = 0.25
 
-    Raises `ValueError` when no photo pixel with weight is left."""
+
+def leave_out_holes(p: Problem, reach: float) -> tuple[Problem, int, float]:
+    """`p` with zero weight at the photo pixels within `reach` photo pixels (a circle and the
+    render's stencils) of a depth hole, how many photo pixels that left out, and the reach used.
+
+    Where that would leave under `_HOLES_KEEP` of the fitted pixels (holes scattered over a
+    whole small frame), the reach is halved until it does not (the filled depth is a smooth
+    continuation of its neighbours, so the nearest pixels matter most). Raises `ValueError`
+    only when the holes themselves cover every fitted photo pixel."""
     if p.holes is None:
-        return p, 0
-    near = near_holes(p.holes, reach * p.ratio, p.ratio)
-    keep = (~near).astype(p.dtype)
+        return p, 0, reach
     w = p.sqrt_w
     fitted = np.any(w > 0, axis=(0, 3)) if w.ndim == 4 else np.any(w > 0, axis=0)
+    while True:
+        near = near_holes(p.holes, reach * p.ratio, p.ratio)
+        left = int(np.sum(fitted & ~near))
+        if left >= _HOLES_KEEP * int(np.sum(fitted)) or (reach <= 0 and left > 0):
+            break
+        if reach <= 0:
+            raise ValueError(
+                f"depth has {int(p.holes.sum())} holes (NaN, 0 or negative: no data) that "
+                "cover every fitted photo pixel: give a depth map with fewer holes"
+            )
+        reach = float(math.floor(reach / 2))
+    keep = (~near).astype(p.dtype)
     sqrt_w = w * (keep[None, ..., None] if w.ndim == 4 else keep[None])
-    if not np.any(sqrt_w > 0):
-        raise ValueError(
-            f"depth has {int(p.holes.sum())} holes (NaN, 0 or negative: no data) whose light "
-            f"reaches every fitted photo pixel (within {reach:.3g} px of a hole); too little is "
-            "left to fit: give a depth map with fewer holes"
-        )
-    return dataclasses.replace(p, sqrt_w=sqrt_w), int(np.sum(near & fitted))
+    return dataclasses.replace(p, sqrt_w=sqrt_w), int(np.sum(near & fitted)), reach
 
 
 def _prepare(

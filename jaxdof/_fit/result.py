@@ -122,10 +122,8 @@ class RESULTS(eqxi.Enumeration):  # pyright: ignore
         "the photo is not fully explained by the model: tiles of it pull towards different lenses "
         "beyond their noise (a model-adequacy test), so the standard errors are inflated to the "
         "spread between the tiles, which covers the bias of what the model lacks; the lens with "
-        "these errors can be used. What the model may lack: vignetting or uneven exposure "
-        "(exposure=True fits a gain and offset), a misregistered or magnified photo, occlusion "
-        "at depth edges it does not render, a non-circular aperture, camera encoding, or a depth "
-        "map that does not match the photo"
+        "these errors can be used; the notes say where the photo differs from the model and "
+        "the likely cause"
     )
 
 

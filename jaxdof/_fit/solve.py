@@ -341,8 +341,25 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
         variance=stats["variance"],
         nuisance_scores=scores,
         nuisance_values=model.nuisance_params(y),
+        residual_map=residual_map(residual, args),
     )
     return result, info
+
+
+def residual_map(residual, args, cells: int = 8) -> Array:
+    """The mean squared weighted residual in each of `cells x cells` regions of the photo (all
+    targets and channels together), `(cells, cells)`; NaN where nothing is fitted. Where the
+    tiles disagree, its pattern says what the model lacks (`fit._cause`)."""
+    _, _, targets, sqrt_w, _ = args
+    shape = targets.shape
+    live = (jnp.broadcast_to(sqrt_w, shape) > 0).astype(residual.dtype)
+    r2 = jnp.square(residual.reshape(shape))
+    axes = (0, 3) if len(shape) == 4 else (0,)
+    r2, live = jnp.sum(r2, axis=axes), jnp.sum(live, axis=axes)
+    rows = jax.nn.one_hot(jnp.arange(shape[1]) * cells // shape[1], cells, dtype=r2.dtype).T
+    cols = jax.nn.one_hot(jnp.arange(shape[2]) * cells // shape[2], cells, dtype=r2.dtype).T
+    total, count = rows @ r2 @ cols.T, rows @ live @ cols.T
+    return jnp.where(count > 0, total / jnp.where(count > 0, count, 1), jnp.nan)
 
 
 def nuisance_columns(model: _Model, y, args) -> dict[str, Array]:
