@@ -2,11 +2,12 @@ r"""Lens calibration: recover focal length, f-number and focus distance from def
 
 `fit_lens` solves the nonlinear least-squares problem
 
-$$\min_\theta \sum_t \sum_p w_p \left( g_t\,\mathrm{render}(I, Z, \mathrm{lens}_t(\theta))_p + o_t
+$$\min_\theta \sum_t \sum_p w_p \left( P_t\big(\mathrm{render}(I, Z, \mathrm{lens}_t(\theta))\big)_p
   - T_{t,p} \right)^2$$
 
-over the free lens fields `theta` (and, optionally, an exposure gain `g_t` and offset `o_t` per
-target), with an optimistix least-squares solver (Levenberg-Marquardt by default), from a few
+over the free lens fields `theta`, `P_t` what the camera adds where the photo needs it (an
+exposure gain and offset, vignetting, a registration per target; the luma of a camera JPEG:
+`photo.py`), with an optimistix least-squares solver (Levenberg-Marquardt by default), from a few
 starting points spread over the scene's depth range. It is the only package that imports
 optimistix. `render` is the forward model, `jaxdof.DefocusModel` unless another
 `jaxdof.AbstractForwardModel` is given.
