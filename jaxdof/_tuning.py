@@ -376,18 +376,15 @@ SELECT_CHI2 = 10.0
 #: of a two-slope scene (sigma 1 % of the mean) the statistic was 0.8-2.3 on 2 dof without an
 #: exposure error and 4395 with the photo at 0.85 of the exposure.
 SELECT_ALPHA = 1e-3
-#: ... and kept only where fitting it moves the lens by more than this many of its reported
-#: standard errors (`select.with_nuisances`). Without it, on the clean ray-traced slant
-#: (`fits/captures.py`), the score test alone fitted a registration (score 555 on 3 dof) that
-#: came out at 0.01 px and 0.03 %.
-SELECT_MOVE = 1.0
 
 #: A colour photo is compared in its sRGB luma when its colour detail at the pixel scale
 #: (`_fit.photo.chroma_detail`) is under this share of the all-in-focus image's: a camera JPEG
 #: keeps its chroma at half resolution. Measured on the 12 ray-traced default-study photos
 #: (one lens each): 0.09-0.24 as JPEG 4:2:0 (quality 75-98, with and without 2 % noise),
-#: 0.30-0.68 as JPEG 4:2:2, 0.98-1.17 linear, as 8-bit PNG, as JPEG 4:4:4 and with 2 % noise.
-LUMA_CHROMA = 0.8
+#: 0.30-0.68 as JPEG 4:2:2, 0.98-1.17 linear, as 8-bit PNG, as JPEG 4:4:4 and with 2 % noise;
+#: a render resampled by quintic splines by 0.7 px and 1 % (`fits/nuisance_rate.py`) 0.76. The
+#: command line reads a JPEG's subsampling from its header instead.
+LUMA_CHROMA = 0.5
 
 _NAMES = (
     "SPANS_MIN_RADIUS",

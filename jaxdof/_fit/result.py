@@ -41,12 +41,14 @@ def nuisance_words(entry: dict) -> str:
     score, p = entry.get("score"), entry.get("p_value")
     if score is None or p is None or not math.isfinite(float(p)):
         return how
-    why = "the photo asked for it" if entry.get("chosen") else "the photo did not ask for it"
-    move = entry.get("move")
-    moves = f"; fitted, it moved the lens {float(move):.2g} se" if move is not None else ""
+    why = "the photo needs it" if entry.get("chosen") else "the photo does not need it"
+    gain = entry.get("explains")
+    tried = (
+        f"; fitted, chi2 {float(gain):.3g} lower in model-error units" if gain is not None else ""
+    )
     return (
         f"{how} ({why}: score {float(score):.3g} on {entry.get('dof')} dof, p = {float(p):.2g}"
-        f"{moves})"
+        f"{tried})"
     )
 
 
@@ -279,10 +281,10 @@ class FitResult(eqx.Module):
       `solve_lens`, which models what it is given.
     - `nuisances`: what `fit_lens` decided about what the camera adds (`"exposure"`,
       `"vignetting"`, `"registration"`, per photo): `{"fitted", "forced", "chosen", "score",
-      "dof", "p_value", "move"}`: the score test at the fit without it and, where that asked
-      for it, how far (in standard errors) fitting it moved the lens (`chosen`: kept), and
-      `"values"` where
-      fitted (shifts in photo pixels); and `"luma"`: whether the photos were compared in their
+      "dof", "p_value", "explains"}`: the score test at the fit without it and, where that
+      rejected, by how much fitting it lowered the chi-square in units of the model's error
+      (`select.explained`; `chosen`: kept), and `"values"` where fitted (shifts in photo
+      pixels); and `"luma"`: whether the photos were compared in their
       luma, with the colour detail that decided it. `None` from `solve_lens`.
 
     `message` is the status's message and the notes; `stderr_kind` says what the standard errors

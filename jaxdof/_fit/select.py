@@ -44,8 +44,6 @@ from .result import RESULTS, FitResult, code_of
 SELECT_CHI2 = _tuning.SELECT_CHI2
 #: The level of the score test that turns a nuisance on (`with_nuisances`).
 SELECT_ALPHA = _tuning.SELECT_ALPHA
-#: How far (in its reported standard errors) fitting a nuisance must move the lens to stay.
-SELECT_MOVE = _tuning.SELECT_MOVE
 
 # Statuses whose lens is worth comparing: a converged fit, whatever its verdict.
 _COMPARABLE = ("successful", "inconsistent", "ambiguous", "window")
@@ -172,10 +170,11 @@ def with_nuisances(
     **The rule.** At a fit without a nuisance, the score (Lagrange multiplier) statistic of its
     parameters (`solve.nuisance_scores`, chi-square with `q T` degrees of freedom where the
     photo has none of it; no refit) is tested at level `SELECT_ALPHA`. Where it rejects, the
-    fit with the nuisance is solved (from the lens found) and kept where it moves the lens by
-    more than `SELECT_MOVE` of its standard errors (as it reports them: inflated to the tiles'
-    spread where the model still lacks something): a real photo rejects any model at its noise
-    level, and a nuisance that then leaves the lens where it was changes nothing a user reads.
+    fit with the nuisance is solved (from the lens found) and kept where it lowers the
+    chi-square by more than `SELECT_CHI2` in units of the fit's model error (its residual
+    variance times its tiles' inflation squared, `explained`): a real photo rejects any model
+    at its noise level (a ray-traced photo asked for a registration of 0.01 px), and a
+    nuisance must explain more than what the model already lacks.
     Forward selection: the most significant rejection first, the others tested again at the
     fit kept, until none is left. A score test keeps the default fit's cost where the photo
     asks for nothing (Rao 1948, Buse 1982)."""
@@ -200,7 +199,7 @@ def with_nuisances(
             and not entries[k].get("fitted")
             and entries[k].get("p_value", math.nan) < SELECT_ALPHA
         ]
-        if _status(result) == "other" or not candidates:
+        if not candidates:
             break
         # The most significant first: the smallest p-value, then the largest score per dof.
         pick = min(
@@ -209,14 +208,18 @@ def with_nuisances(
         )
         tried.add(pick)
         on = tuple(k for k in asked if entries[k].get("fitted") or k == pick)
-        start = {"init": result.lenses, "starts": 1, "pyramid": None}
+        failed = _status(result) == "other"
+        # From the lens found; where the fit without it failed (a misregistration can drive it
+        # into a flat region), from the caller's starts.
+        start = {} if failed else {"init": result.lenses, "starts": 1, "pyramid": None}
         try:
             refit = fit(**{**call, **_as_chosen(result, call), **start, "nuisances": on})
         except ValueError:
             continue
-        move = lens_move(result, refit)
-        entries[pick]["move"] = move
-        if _status(refit) not in ("successful", "inconsistent") or not move > SELECT_MOVE:
+        gain = explained(refit, result)
+        entries[pick]["explains"] = gain
+        ok = _status(refit) in ("successful", "inconsistent")
+        if not ok or not (failed or gain > SELECT_CHI2):
             continue
         t0, t1 = result.treatment, refit.treatment
         assert t0 is not None and t1 is not None
@@ -226,28 +229,25 @@ def with_nuisances(
         for name, value in asked.items():
             tested[name].update(forced=value is not None, chosen=name in chosen)
             if name in chosen or name in tried:  # the test that chose it, at the fit without it
-                keep = ("score", "dof", "p_value", "move")
+                keep = ("score", "dof", "p_value", "explains")
                 tested[name].update({k: entries[name][k] for k in keep if k in entries[name]})
         result, entries = dataclasses.replace(refit, treatment=treatment), tested
         call = {**call, "nuisances": on}
     return dataclasses.replace(result, nuisances=entries)
 
 
-def lens_move(before: FitResult, after: FitResult) -> float:
-    """How far `after`'s lens is from `before`'s, in `after`'s standard errors: the largest over
-    the free fields and targets (the focus as its power, which is finite at infinity)."""
-    moves = [0.0]
-    for name, se in after.stderr.items():
-        if name == "focus_distance":
-            a, b = (1 / np.asarray(r.lenses.focus_distance, np.float64) for r in (after, before))
-            se = after.focus_power_stderr
-        elif name in ("focal_length", "f_number"):
-            a, b = (np.asarray(getattr(r.lenses, name), np.float64) for r in (after, before))
-        else:
-            continue
-        z = np.abs(a - b) / np.maximum(np.asarray(se, np.float64), np.finfo(np.float64).tiny)
-        moves.append(float(np.nanmax(z)))
-    return max(moves)
+def explained(refit: FitResult, base: FitResult) -> float:
+    """How much of `base`'s misfit `refit` explains: the chi-square difference on the same pixels
+    (as `prefers`) in units of `base`'s model error, its residual variance times the square of its
+    tiles' inflation (1 where its tiles agree): the noise as the photo's whole misfit sees it."""
+    n0, n1 = _residuals(base), _residuals(refit)
+    l0, l1 = float(np.asarray(base.loss)), float(np.asarray(refit.loss))
+    if not (np.isfinite(l0) and np.isfinite(l1)) or min(n0, n1) <= 0:
+        return -math.inf
+    inflation = float(np.asarray(base.adequacy["inflation"]))
+    inflation = inflation if math.isfinite(inflation) else 1.0
+    sigma2 = max(float(np.asarray(base.sigma)) ** 2 * inflation**2, np.finfo(np.float64).tiny)
+    return min(n0, n1) * (2 * l0 / n0 - 2 * l1 / n1) / sigma2
 
 
 def _from(result: FitResult, call: dict) -> dict:
