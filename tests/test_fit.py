@@ -422,8 +422,8 @@ def test_residual_jacobian_rule():
     image, depth, targets, sqrt_w, base, _ = prepare._prepare(
         image, depth, target, lens(), None, jaxdof.DefocusModel()
     )
-    lay = layout._Spec(("f_number", "focus_distance"), (), 1, False).layout(base, depth)
-    model = residual._Model(1, 3.0, False, jaxdof.DefocusModel(), n_live=2)
+    lay = layout._Spec(("f_number", "focus_distance"), (), 1).layout(base, depth)
+    model = residual._Model(1, 3.0, (), jaxdof.DefocusModel(), n_live=2)
     args = (image, depth, targets, sqrt_w, lay)
     # Off the data, circles > 1/2 px: N e^0.3 and d_f - f times e^-0.2 (the point this test has
     # always used; given as a lens, since the focus coordinate is no longer log(d_f - f)).
@@ -814,8 +814,8 @@ def test_focus_coordinate_jacobian():
         image, depth, targets, sqrt_w, base, _ = prepare._prepare(
             image, depth, target + 0.01, lens(dtype), None, jaxdof.DefocusModel()
         )
-        lay = layout._Spec(("f_number", "focus_distance"), (), 1, False).layout(base, depth)
-        model = residual._Model(1, 4.0, False, jaxdof.DefocusModel(), n_live=2)
+        lay = layout._Spec(("f_number", "focus_distance"), (), 1).layout(base, depth)
+        model = residual._Model(1, 4.0, (), jaxdof.DefocusModel(), n_live=2)
         return model, (image, depth, targets, sqrt_w, lay), model.pack(base, lay)
 
     def column(dtype, y_focus):

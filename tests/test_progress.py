@@ -210,7 +210,7 @@ def test_decoder_is_the_fits_own_map(free, shared):
     init = jaxdof.ThinLens.from_sensor(0.05, 2.8, 3.0, sensor_width=0.036, image_width=10)
     t = 3 if "focal_length" in free else 1
     targets = np.stack([image] * t)
-    p = prepare_problem(image, depth, targets, init, None, forward_model(None), free, shared, False)
+    p = prepare_problem(image, depth, targets, init, None, forward_model(None), free, shared)
     decode = fit_lens_decoder(init, depth, free, shared, t)
     for _ in range(5):
         y = rng.normal(size=3 * t).astype(np.float32)

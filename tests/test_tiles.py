@@ -33,7 +33,7 @@ def test_mosaic_interiors_are_the_whole_frame_render():
     window = 4.0
     photo = np.asarray(jaxdof.render(image, depth, TRUTH, max_radius=window))
     model = jaxdof.DefocusModel()
-    p = prepare_problem(image, depth, photo, TRUTH, None, model, ("f_number",), (), False)
+    p = prepare_problem(image, depth, photo, TRUTH, None, model, ("f_number",), ())
     halo = model.border_band(window)
     tiles = T.Tiles(((4, 4), (4, 68), (60, 36), (92, 92)), 32, halo, (S, S))
     q = T.tiled_problem(p, tiles)
@@ -67,7 +67,7 @@ def test_choice_follows_information_and_avoids_depth_edges():
     photo = np.asarray(jaxdof.render(image, depth, TRUTH, max_radius=4.0))
     model = jaxdof.DefocusModel()
     free = ("f_number", "focus_distance")
-    p = prepare_problem(image, depth, photo, TRUTH, weight, model, free, (), False)
+    p = prepare_problem(image, depth, photo, TRUTH, weight, model, free, ())
     rows = np.asarray(p.b)[None]
     # Candidates: rows 4, 36, 68 x columns 4, 36, 68 (32 px, halo 4); of these (4, 68) and
     # (36, 68) lie wholly in the weighted half and clear of the step.
