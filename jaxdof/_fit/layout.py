@@ -120,10 +120,6 @@ class _Spec:
                 names.append(f"{name}[{t}]" if multi else name)
         self.used, self.names = tuple(used), tuple(names)
 
-    @property
-    def exposure(self) -> bool:
-        return "exposure" in self.nuisances
-
     # A spec is static data of the compiled fit: equal specs must share one compilation.
     def _key(self):
         return (self.free, self.shared, self.n_targets, self.nuisances, self.luma)
