@@ -30,7 +30,7 @@ from .._upsample import upsample_depth
 from .forward import AbstractForwardModel
 from .layout import LENS_FIELDS, nuisance_names, pack, theta_floor
 from .lm import bounded
-from .photo import _LANCZOS, NUISANCES, canonical, chroma_detail, half_diagonal
+from .photo import _LANCZOS, FRAMED, NUISANCES, canonical, chroma_detail, half_diagonal
 from .prepare import (
     Problem,
     _check_names,
@@ -51,7 +51,15 @@ from .select import (
     selected,
     with_nuisances,
 )
-from .solve import default_solver, degenerate_at, finish, fit_starts, restate, run_stage
+from .solve import (
+    default_solver,
+    degenerate_at,
+    finish,
+    fit_starts,
+    nuisance_scores,
+    restate,
+    run_stage,
+)
 from .strategies import (
     _COARSE_TOL,
     _check_pyramid,
@@ -979,6 +987,7 @@ def fit_lens(
     for name in asked:
         del call[name]
     call["nuisances"] = canonical(k for k, v in asked.items() if v)
+    call["test"] = canonical(k for k, v in asked.items() if v is None)
     call["luma"], luma_entry = _choose_luma(image, targets, luma)
     coarse = np.shape(depth)
     if len(coarse) == 2 and np.ndim(image) in (2, 3) and coarse != np.shape(image)[:2]:
@@ -1040,9 +1049,11 @@ def _choose_luma(image, targets, luma: bool | None) -> tuple[bool, dict]:
 def _fit_treated(
     image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
     allow_degenerate, nuisances: tuple[str, ...], luma: bool, starts, verbose, model, method,
-    footprint, pyramid, downsample, border, tiles, edge_weight, registration_reach=None,
+    footprint, pyramid, downsample, border, tiles, edge_weight, test: tuple[str, ...] = (),
+    registration_reach=None,
 ) -> FitResult:  # fmt: skip
-    """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection."""
+    """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection; the score
+    tests of the nuisances `test` (`photo.NUISANCES`) where it does not fit them."""
     given = dict(locals())  # the call, to refit on tiles chosen for a larger window
     forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)
     free, shared = _check_names(free, shared)
@@ -1083,7 +1094,7 @@ def _fit_treated(
         levels = 1
     user_window = None if max_radius is None else window
     run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, 1, band)
-    framed = {"vignetting", "registration"} & set(p.spec.nuisances)
+    framed = FRAMED & set(p.spec.nuisances)
     if framed and budget is not None:
         raise ValueError(
             f"{' and '.join(sorted(framed))} are fitted on the whole frame (they depend on where "
@@ -1119,6 +1130,14 @@ def _fit_treated(
         )
         result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single, used)
         info.update(jax.device_get(stats))
+        # The score tests of the nuisances to decide, where the fit leaves something to explain
+        # (`select.with_nuisances`); on tiles only those that do not depend on the whole frame.
+        names = tuple(k for k in test if k not in p.spec.nuisances and not (chosen and k in FRAMED))
+        if names and float(info["sigma"]) >= rounding_sigma(targets, np.float32):
+            scores = run_stage(
+                "nuisance scores", nuisance_scores, model_r, solution, args, p.spec, names
+            )
+            info["nuisance_scores"] = jax.device_get(scores)
     except _SOLVER_ERRORS as err:
         failed = _failed(run, err, window)
         return dataclasses.replace(
@@ -1176,15 +1195,13 @@ def _nuisance_entries(info, spec, photo, tiled: bool) -> dict:
     """`FitResult.nuisances`: per nuisance of `photo.NUISANCES`, fitted or not, its values (in
     photo pixels for shifts) and the score test of it at this fit (where not fitted; untested on
     tiles for the ones that depend on the whole frame)."""
-    scores = np.asarray(info.get("nuisance_scores", np.full(len(NUISANCES), np.nan)))
+    scores = info.get("nuisance_scores", {})
     r = half_diagonal(photo[0], photo[1])
     out = {}
-    for k, (name, params) in enumerate(NUISANCES.items()):
+    for name, params in NUISANCES.items():
         fitted = name in spec.nuisances
         dof = len(params) * spec.n_targets
-        score = float(scores[k])
-        if fitted or (tiled and name != "exposure"):
-            score = math.nan
+        score = float(scores[name]) if name in scores else math.nan
         entry = {
             "fitted": fitted,
             "score": score,

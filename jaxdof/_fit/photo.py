@@ -52,6 +52,10 @@ _TAPS = np.arange(-_LANCZOS + 1, _LANCZOS + 1)
 _LUMA = (0.299, 0.587, 0.114)
 
 
+# The nuisances that depend on where a pixel is in the whole frame: not fitted on tiles.
+FRAMED = frozenset({"vignetting", "registration"})
+
+
 def canonical(nuisances) -> tuple[str, ...]:
     """The nuisances named, in `NUISANCES` order; a `ValueError` for an unknown name."""
     nuisances = set(nuisances)

@@ -183,11 +183,17 @@ def with_nuisances(
         entries.setdefault(name, {"fitted": bool(value)})
         entries[name].update(forced=value is not None, chosen=False)
     tried: set[str] = set()
+    # A photo holds at most float32's digits (a camera's 16 bits, or a float32 render): a fit
+    # closer than float32's rounding of it (a float64 fit of a render stops at the solver's
+    # tolerance, far above float64's) leaves no camera's nuisance to find.
+    float32_floor = rounding * float(
+        np.finfo(np.float32).eps / np.finfo(np.asarray(result.loss).dtype).eps
+    )
     for _ in range(len(asked)):
         # A fit down to the float rounding (a render of the photo's own lens) leaves nothing
         # for a nuisance to explain, and its residual is the rounding, which is proportional to
         # the values, so along the gain column: no test there (the floor of `prefers`).
-        if float(np.asarray(result.sigma)) < rounding:
+        if float(np.asarray(result.sigma)) < max(rounding, float32_floor):
             for name in asked:
                 entries[name]["exact"] = not entries[name].get("chosen")
             break
@@ -216,7 +222,17 @@ def with_nuisances(
             refit = fit(**{**call, **_as_chosen(result, call), **start, "nuisances": on})
         except ValueError:
             continue
-        gain = explained(refit, result)
+        base = result
+        if not failed and _residuals(refit) != _residuals(result):
+            # The registration's reach left edge pixels out, whose misfit may differ: the fit
+            # without it again on the same pixels (the band is a weight: the same programs).
+            try:
+                base = fit(**{**call, **_as_chosen(result, call), **start, "border": refit.border})
+            except ValueError:
+                continue
+            if _status(base) not in ("successful", "inconsistent"):
+                base = result
+        gain = explained(refit, base)
         entries[pick]["explains"] = gain
         ok = _status(refit) in ("successful", "inconsistent")
         if not ok or not (failed or gain > SELECT_CHI2):

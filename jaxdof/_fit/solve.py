@@ -333,13 +333,11 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
     stats = _statistics_at(residual, jac, g, theta, args, spec)
     check = _check_model(residual, jac, args, spec, band)
     result = _assemble(spec, model, (y, status, num_steps, theta), stats, check, args, single)
-    scores = nuisance_scores(model, y, residual, jac, args, spec)
     info = dict(
         status=result.status,
         condition=stats["condition"],
         sigma=stats["sigma"],
         variance=stats["variance"],
-        nuisance_scores=scores,
         nuisance_values=model.nuisance_params(y),
         residual_map=residual_map(residual, args),
     )
@@ -362,17 +360,17 @@ def residual_map(residual, args, cells: int = 8) -> Array:
     return jnp.where(count > 0, total / jnp.where(count > 0, count, 1), jnp.nan)
 
 
-def nuisance_columns(model: _Model, y, args) -> dict[str, Array]:
-    """For every nuisance the fit lacks, the derivatives of the weighted residual with respect to
-    its parameters at their null values, `(n, q T)`: from one render (no refit), through
-    `photo.camera` only."""
+def nuisance_columns(model: _Model, y, args, which=tuple(NUISANCES)) -> dict[str, Array]:
+    """For every nuisance of `which` the fit lacks, the derivatives of the weighted residual with
+    respect to its parameters at their null values, `(n, q T)`: from one render (no refit),
+    through `photo.camera` only."""
     _, _, targets, sqrt_w, _ = args
     y = y.astype(targets.dtype)
     raw = model.render(y, args)
     params = model.nuisance_params(y)
     out = {}
     for name in NUISANCES:
-        if name in model.nuisances:
+        if name in model.nuisances or name not in which:
             continue
         on = canonical((*model.nuisances, name))
         names = NUISANCES[name]
@@ -386,18 +384,15 @@ def nuisance_columns(model: _Model, y, args) -> dict[str, Array]:
     return out
 
 
-def nuisance_scores(model: _Model, y, residual, jac, args, spec: _Spec) -> Array:
-    """`score_statistic` of every nuisance of `photo.NUISANCES` at this fit, `(K,)`; 0 for the
-    fitted ones. Chi-square with `q T` degrees of freedom (`q` the nuisance's parameters) where
-    the photo has none of it."""
-    columns = nuisance_columns(model, y, args)
-    zero = jnp.zeros((), residual.dtype)
-    return jnp.stack(
-        [
-            score_statistic(residual, jac, columns[k], args, spec) if k in columns else zero
-            for k in NUISANCES
-        ]
-    )
+@eqx.filter_jit
+def nuisance_scores(model: _Model, solution, args, spec: _Spec, names: tuple[str, ...]):
+    """`score_statistic` of each nuisance of `names` (of `photo.NUISANCES`) that the fit at
+    `solution` (`fit_starts`'s) lacks, `{name: score}`. Chi-square with `q T` degrees of freedom
+    (`q` the nuisance's parameters) where the photo has none of it. A compiled stage of its own,
+    run only where a nuisance is to be decided: an exact fit or a caller's choice skips it."""
+    y, _, _, residual, _, jac, _ = solution
+    columns = nuisance_columns(model, y, args, names)
+    return {k: score_statistic(residual, jac, c, args, spec) for k, c in columns.items()}
 
 
 def score_statistic(residual, jac, extra, args, spec: _Spec) -> Array:
