@@ -65,7 +65,8 @@ class Treatment:
     - `forced`: the choices the caller made (`"occlusion"`, `"footprint"`, `"edge_weight"`);
       the rest were chosen by the rules above.
     - `depth_holes`: image pixels without a depth (NaN, 0, negative; filled for the render) and
-      `hole_pixels`: the photo pixels within a circle's reach of them, left out of the fit.
+      `hole_pixels`: the photo pixels within `hole_reach` photo px of them (the starting lens's
+      circle), left out of the fit; a refit that the photo compares leaves out the same ones.
     - `depth_upsampled`: the shape of a coarser depth map `fit_lens` upsampled to the image
       (`jaxdof.upsample_depth`); `()` when it had the image's.
     - `selected`: what the photo said of the scene's choices (a fit's only; `jaxdof/_fit/select.py`):
@@ -85,6 +86,7 @@ class Treatment:
     selected: tuple[str, ...] = ()
     depth_holes: int = 0
     hole_pixels: int = 0
+    hole_reach: float = 0.0
     depth_upsampled: tuple[int, ...] = ()
 
     def __str__(self) -> str:

@@ -206,10 +206,11 @@ def test_reproducible_bit_for_bit():
     a, _ = fit_twice_warm(image, depth, target, init, max_radius=WINDOW, starts=STARTS, **EXACT)
     # The compiled stages can be timed without patching: `fit_starts` on every pixel (the border
     # band of this small frame keeps under half of it, `fit._SEARCH_ALL_BELOW`), `fit_starts` with
-    # the band, then `finish`.
+    # the band, `finish`, then the score tests of the nuisances left to decide.
     with record_stages() as log:
         c = fit_lens(image, depth, target, init, max_radius=WINDOW, starts=STARTS, **EXACT)
-    assert [name for name, _ in log] == ["fit_starts", "fit_starts", "finish"]
+    stages = ["fit_starts", "fit_starts", "finish", "nuisance scores"]
+    assert [name for name, _ in log] == stages
     assert all(t > 0 for _, t in log)
     np.testing.assert_array_equal(np.asarray(c.lenses.f_number), np.asarray(a.lenses.f_number))
 

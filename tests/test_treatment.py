@@ -236,8 +236,17 @@ def test_depth_holes_are_filled_and_the_pixels_they_reach_left_out():
     np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=1e-4)
     with pytest.raises(ValueError, match="no data"):
         jaxdof.fit_lens(image, np.full_like(depth, np.nan), photo, start)
-    # Holes scattered over the whole frame, every pixel within a circle of one: the reach is
-    # halved until a quarter of the pixels is left, and the fit goes on (no exception).
+
+
+def test_depth_holes_scattered_over_the_frame_leave_a_quarter():
+    """Holes scattered over the whole frame, every pixel within a circle of one: the reach is
+    halved until a quarter of the pixels is left, and the fit goes on (no exception)."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.05, 1, (32, 40, 3)).astype(np.float32)
+    depth = np.linspace(1.0, 5.0, 40, dtype=np.float32)[None].repeat(32, 0)
+    truth = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=40)
+    photo = jaxdof.render(image, depth, truth)
+    start = jaxdof.ThinLens.from_sensor(0.05, 4.0, 2.0, sensor_width=0.0048, image_width=40)
     scattered = depth.copy()
     scattered[2::6, 3::7] = np.nan
     fit = jaxdof.fit_lens(image, scattered, photo, start)

@@ -44,10 +44,12 @@ from .residual import _Model
 from .result import RESULTS, FitResult, _degeneracy_text, code_of, degeneracy_reason, member
 from .select import (
     alternatives,
+    decisions,
     kept,
     prefers,
     refit_call,
     rounding_sigma,
+    same_pixels,
     selected,
     with_nuisances,
 )
@@ -1002,9 +1004,23 @@ def fit_lens(
     result = _photo_says(result, call, rounding)
     # ... and in what the camera added: each nuisance fitted where a score test at the fit
     # without it rejects and it explains more than the model's error (`select.with_nuisances`),
-    # the caller's choices as given. (The treatment is not asked again with them: on the
-    # ray-traced slant, magnified 1 %, the footprint then lost by chi2 3450 and K went 10 % off.)
-    result = with_nuisances(result, call, _fit_treated, rounding, asked)
+    # the caller's choices as given ...
+    decided = with_nuisances(result, call, _fit_treated, rounding, asked)
+    on = canonical(k for k, v in (decided.nuisances or {}).items() if v.get("fitted"))
+    if on != call["nuisances"]:
+        # ... and where the photo asked for one, the treatment asked again with it: a photo
+        # darker than the model made the footprint correction look worse (the ray-traced fgbg
+        # at exposure x 0.85 dropped it, focus 5 % off).
+        call = {**call, "nuisances": on, "test": ()}  # decided: no score tests again
+        start = {"init": decided.lenses, "starts": 1, "pyramid": None}
+        try:
+            again = _fit_treated(**{**call, **start, **same_pixels(decided)})
+            again = _photo_says(again, {**call, **same_pixels(decided)}, rounding)
+        except ValueError:
+            again = None
+        result = decided if again is None else decisions(again, decided, asked)
+    else:
+        result = decided
     if coarse and result.treatment is not None:
         treatment = dataclasses.replace(result.treatment, depth_upsampled=tuple(coarse))
         result = dataclasses.replace(result, treatment=treatment)
@@ -1050,7 +1066,7 @@ def _fit_treated(
     image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
     allow_degenerate, nuisances: tuple[str, ...], luma: bool, starts, verbose, model, method,
     footprint, pyramid, downsample, border, tiles, edge_weight, test: tuple[str, ...] = (),
-    registration_reach=None,
+    registration_reach=None, hole_reach=None,
 ) -> FitResult:  # fmt: skip
     """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection; the score
     tests of the nuisances `test` (`photo.NUISANCES`) where it does not fit them."""
@@ -1080,10 +1096,14 @@ def _fit_treated(
     # border's stencils (the border band of their window; the starts' window can be far
     # larger: starts spread in diopters make large circles).
     own = window_for(forward.max_circle(rows0[:1], p.d), float(max(p.photo)))
-    p, hole_pixels, _ = leave_out_holes(p, float(forward.border_band(min(own, window))))
+    if hole_reach is None:
+        hole_reach = float(forward.border_band(min(own, window)))
+    p, hole_pixels, hole_reach = leave_out_holes(p, hole_reach)
     if p.holes is not None:
         holes = int(p.holes.sum())
-        treatment = dataclasses.replace(treatment, depth_holes=holes, hole_pixels=hole_pixels)
+        treatment = dataclasses.replace(
+            treatment, depth_holes=holes, hole_pixels=hole_pixels, hole_reach=hole_reach
+        )
     budget = use_tiles(tiles, p.photo)
     if budget is not None and not fits_tiles(p.photo, forward, window, budget):
         budget = None  # too few candidate tiles: the whole frame
@@ -1147,7 +1167,7 @@ def _fit_treated(
         result,
         border=used,
         treatment=dataclasses.replace(treatment, border=used),
-        nuisances=_nuisance_entries(info, p.spec, p.photo, tiled=chosen is not None),
+        nuisances=_nuisance_entries(info, p.spec, p.photo, run.extra_band),
     )
     if "registration" in p.spec.nuisances:
         needed = _registration_reach(p.photo, info["nuisance_values"])
@@ -1191,10 +1211,10 @@ def _registration_reach(photo, values=None) -> int:
     return int(math.ceil(shift + mag * r)) + _LANCZOS
 
 
-def _nuisance_entries(info, spec, photo, tiled: bool) -> dict:
+def _nuisance_entries(info, spec, photo, reach: int) -> dict:
     """`FitResult.nuisances`: per nuisance of `photo.NUISANCES`, fitted or not, its values (in
-    photo pixels for shifts) and the score test of it at this fit (where not fitted; untested on
-    tiles for the ones that depend on the whole frame)."""
+    photo pixels for shifts; for the registration also the `reach` its band added) and the score
+    test of it at this fit (where it was tested)."""
     scores = info.get("nuisance_scores", {})
     r = half_diagonal(photo[0], photo[1])
     out = {}
@@ -1216,6 +1236,8 @@ def _nuisance_entries(info, spec, photo, tiled: bool) -> dict:
                 ]
                 for n in params
             }
+            if name == "registration":
+                entry["reach"] = reach
         out[name] = entry
     return out
 

@@ -87,15 +87,33 @@ def _as_chosen(result: FitResult, call: dict) -> dict:
     """The options that make a fit treat the scene as `result` did."""
     t = result.treatment
     assert t is not None
+    same = same_pixels(result)
+    # The band as the caller's: without the registration's reach, which a fit adds to it.
+    reach = same.get("registration_reach", 0)
     keep = {
         "footprint": t.footprint,
         "method": t.method if t.occlusion else "soft",
         "edge_weight": t.edge_weight if t.edge_weight > 0 else False,
-        "border": int(result.border) if call.get("border") is not False else False,
+        "border": int(result.border) - reach if call.get("border") is not False else False,
+        **same,
     }
     if call.get("method") is not None:
         keep["method"] = call["method"]
     return keep
+
+
+def same_pixels(result: FitResult) -> dict:
+    """The options that make a refit leave out `result`'s pixels: the reach of its registration
+    and of its depth holes (each set by the starting lens, which a refit's differs from), where
+    it has them; the band is `_as_chosen`'s."""
+    out = {}
+    reach = (result.nuisances or {}).get("registration", {}).get("reach")
+    if reach is not None:
+        out["registration_reach"] = int(reach)
+    t = result.treatment
+    if t is not None and t.depth_holes:
+        out["hole_reach"] = float(t.hole_reach)
+    return out
 
 
 def prefers(alt: FitResult, incumbent: FitResult, rounding: float) -> tuple[bool, float]:
@@ -250,6 +268,17 @@ def with_nuisances(
         result, entries = dataclasses.replace(refit, treatment=treatment), tested
         call = {**call, "nuisances": on}
     return dataclasses.replace(result, nuisances=entries)
+
+
+def decisions(final: FitResult, decided: FitResult, asked: dict[str, bool | None]) -> FitResult:
+    """`final` (a fit with the nuisances `decided` chose) reporting the tests that decided them
+    (`with_nuisances`): each nuisance's values from `final`, its test from `decided`."""
+    entries = {k: dict(v) for k, v in (final.nuisances or {}).items()}
+    test = ("forced", "chosen", "score", "dof", "p_value", "explains", "exact")
+    for name in asked:
+        old = (decided.nuisances or {}).get(name, {})
+        entries[name] = {**entries.get(name, {}), **{k: old[k] for k in test if k in old}}
+    return dataclasses.replace(final, nuisances=entries)
 
 
 def explained(refit: FitResult, base: FitResult) -> float:

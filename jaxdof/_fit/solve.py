@@ -522,7 +522,8 @@ def record_stages() -> Iterator[list[tuple[str, float]]]:
 
     `with record_stages() as log: fit_lens(...)` appends `(stage, seconds)` to `log` for every
     compiled call (`"fit_starts"` per pyramid level and window, `"fit_starts"` and `"restate"`
-    when a focus is settled at infinity, then `"finish"`), each timed up to
+    when a focus is settled at infinity, then `"finish"`, and `"nuisance scores"` where a nuisance
+    is to be decided), each timed up to
     its results being ready (`jax.block_until_ready`); `fit_lens` reads those results on the host
     right after anyway, so the timing does not change the fit's own wall time. The rest of a warm
     `fit_lens` call (checks, set-up, wording) is its total time minus their sum.
