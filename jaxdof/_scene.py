@@ -1,4 +1,4 @@
-r"""What a scene needs modelled, decided from its depth map and a lens (issue 21): `Treatment`.
+r"""What a scene needs modelled, decided from its depth map and a lens: `Treatment`.
 
 A photo differs from the thin-lens render of its all-in-focus image in three places, each with a
 treatment that `jaxdof.fit_lens` (and `jaxdof.render(method="auto")`) turns on only where the

@@ -59,7 +59,7 @@ reverse (the scan body is recomputed in the backward pass, not stored).
 rounding error grows with the row's length rather than with the window. Measured in float32
 against the float64 result (uniform image in [0, 1], radii uniform in [0, R]): 8e-7 on a
 16 x 2048 image at R = 32 (the dense gather: 1.3e-6); `tests/test_spans.py` checks 96 x 96 at
-R = 40 against issue 2's bound, 2e-5 of the image's range.
+R = 40 against the float32 accuracy goal, 2e-5 of the image's range.
 """
 
 from __future__ import annotations

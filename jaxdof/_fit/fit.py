@@ -792,193 +792,80 @@ def fit_lens(
 ) -> FitResult:
     r"""Recover lens parameters from defocused photos of a scene with known image and depth.
 
-    Minimises
+    Minimises, over the `free` lens fields (and the camera's nuisances where fitted),
 
-    $$\sum_t \sum_p w_p \left( g_t\,\mathrm{model}(I, Z, \mathrm{lens}_t)_p + o_t - T_{t,p}
-      \right)^2$$
+    $$\sum_t \sum_p w_p \left( E\big(g_t V_t(p)\, W_t[\mathrm{model}(I, Z, \mathrm{lens}_t)]_p
+      + o_t\big) - T_{t,p} \right)^2$$
 
-    (linear light; `model` is `jaxdof.render` by default) over the `free` lens fields (and,
-    with `exposure`, a gain `g_t` and offset `o_t` per target) with an optimistix least-squares
-    solver, in unconstrained coordinates (`log N`, a bounded logit of `f`, and for the focus the
-    focus power scaled to the scene, `fcap / (d_f - f)` with `fcap` just under the nearest depth,
-    in which focus at infinity is the ordinary point 0), from a few starts, and reports the best
-    fit with standard errors. The sums run over the photo pixels that light from outside the
-    frame cannot reach (`border`).
+    (linear light; `model` is `jaxdof.render` by default; `g, o` exposure, `V` vignetting, `W`
+    registration, `E` the luma encoding, each the identity unless fitted) with an optimistix
+    least-squares solver from a few starts, in coordinates in which focus at infinity is the
+    ordinary point 0 (`log N`, a logit of `f`, the focus power in diopters scaled to the scene).
+    The photo pixels within a circle's reach of the frame's edge, which hold light from outside
+    the frame, are left out (`border`).
 
     **Arguments:**
 
     - `image`: the all-in-focus linear-light image, `(H, W)` or `(H, W, C)`.
-    - `depth`: z-depth of every pixel (m), `(H, W)`, beyond the focal length; `inf` allowed.
-    - `targets`: the defocused photo(s): one image of the photo's shape (the image's, or
-      `model.photo_shape(image.shape)`), a sequence of them, or an array `(T, *photo)`.
-    - `init`: a `ThinLens` (used for every target) or one per target: the start, and the value of
-      every field that is not free (`focus_distance = inf`, focused at infinity, included). Its
-      `pixel_pitch` is always fixed.
+    - `depth`: z-depth (m), `(H, W)` or coarser (upsampled, `jaxdof.upsample_depth`); `inf` is
+      infinitely far; NaN, 0 and negative are holes (filled; the photo pixels they reach are
+      left out and counted in `FitResult.treatment`).
+    - `targets`: the photo(s): one of the photo's shape, a sequence, or an array `(T, *photo)`.
+    - `init`: a `ThinLens` (for every target) or one per target: the start, and the value of
+      every field that is not free. `pixel_pitch` is always fixed.
     - `free`: the fields to fit, among `"focal_length"`, `"f_number"`, `"focus_distance"`.
-    - `shared`: the free fields that take one value across all targets (a focus bracket:
-      `shared=("focal_length", "f_number")`, with `focus_distance` free per target).
-    - `solver`: any optimistix least-squares solver; default optimistix's Levenberg-Marquardt,
-      `rtol = atol = tol` with `tol = 1e-8` (float64) or `1e-5` (float32: steps in the log
-      coordinates below that are at float32's rounding floor), which also stops once Bates &
-      Watts' relative offset is under `1e-3`: its next step would move the fit by less than
-      about a thousandth of a standard error (on a noisy photo Levenberg-Marquardt converges only
-      linearly; `jaxdof/_fit/lm.py`).
-    - `max_steps`: solver step limit per start.
-    - `weight`: optional per-pixel weight `>= 0` (an inverse variance, or a 0/1 mask), `(H, W)`,
-      `(T, H, W)`, or the photo's/targets' shape.
-    - `max_radius`: the filter window (pixels, static). `None` picks one with headroom over the
-      circles of every start and refits with a larger one if the solution's circles outgrow it.
-      Circles above the window are clamped (see `jaxdof.coc_filter`), so a given value must
-      exceed the true largest circle.
-    - `allow_degenerate`: return a fit whose free fields the data cannot all determine (with
-      `success=False` and `inf` standard errors for the undetermined fields) instead of raising.
-    - `exposure`, `vignetting`, `registration`: what the camera adds, per target
-      (`jaxdof/_fit/photo.py`): a gain and an offset; a radial gain `1 + a rho^2 + b rho^4`
-      (`rho` 1 in the corners); a shift and a magnification about the centre (a tripod that
-      moved, focus breathing; the band left out grows by its reach). `None` (default): fitted
-      where the photo needs it: a score test at the fit without it (level `SELECT_ALPHA`) asks
-      for it, and fitting it lowers the chi-square by more than `SELECT_CHI2` in units of the
-      model's error (the noise times the tiles' inflation; `select.with_nuisances`); `True` fits it, `False` does not. Vignetting and
-      registration need the whole frame (`tiles=None` for a large photo). Each decision, the
-      test and the fitted values (shifts in photo pixels) are in `FitResult.nuisances`.
-    - `luma`: compare colour photos in their sRGB luma `Y'` (the render encoded as the photo
-      was): `None` (default) where a photo has lost the image's colour detail (a camera JPEG,
-      whose colour is stored at half resolution: `_tuning.LUMA_CHROMA`), `True`, `False`.
-    - `starts`: number of starting points (default 4 when the focus distance is free, else 3): the
-      `init` lens, then focus distances spread evenly in diopters over the scene's depth range
-      (keeping `K` through `N` where possible), which covers the near/far ambiguity; with the focus
-      distance fixed, `K` spread by factors of 2. All starts run in lockstep as one solve, and a
-      start that at its pace cannot end below a converged one within `max_steps` is stopped
-      (`race.py`); the reported start is never one of those.
-    - `verbose`: `True` prints step, loss and the current lens of every start while solving; a
-      callable is passed to the optimistix solver as its `verbose` (it receives `(name, value)`
-      pairs, with `y` in the solver's coordinates); if it has a `stage(text)` method, that is
-      told the work done outside the solver ("choosing tiles ...").
-    - `model`: the forward model, a `jaxdof.AbstractForwardModel`; default
-      `jaxdof.DefocusModel(method=method, footprint=footprint, downsample=downsample)`. A model of
-      your own (a subclass) runs through the same solve, compiled for it.
-    - `method`, `footprint`, `downsample`: the default model's options, only without `model`
-      (giving both is a `ValueError`); see `jaxdof.DefocusModel`. `method` (default `None`: the
-      exact coverage `"soft"`, or `jaxdof.LocalOcclusion()` where depth edges matter;
-      see *Treatment* below)
-      must be differentiable with respect to the radius; `footprint` (default `None`: on where
-      small circles dominate) is the pixel-footprint correction; `downsample` (default 1): the
-      image and depth are
-      this many times the targets' resolution in each axis, and targets, weights, the window and
-      the circles are in the photo's pixels. An all-in-focus image at 2x the photo's resolution
-      (a pixel-shift capture) carries the detail inside each photo pixel that blur of circles of
-      a pixel or two depends on (`fits/results/raytraced.md`); each render costs about `s^2`
-      times more.
-    - `pyramid`: coarse-to-fine levels (a Python int; `None`: automatic; `0` or `1`: full
-      resolution only). Level `l` halves the images `l` times (2 x 2 box averages in linear light;
-      depth averaged in inverse depth, weights by their harmonic mean) and doubles the pixel pitch
-      (so every circle, and the window, halves). The starts are solved on the coarsest level,
-      where a render costs `4^-l` of the full one; every finer level starts from the solution of
-      the level below (and a near-tie alternative), the full-resolution level also from `init`
-      itself (a coarse level's model error can favour a wrong basin; the full-resolution loss
-      decides), and the last is the full-resolution problem with the full tolerance, so
-      the result (lens, standard errors, statistics) is the full-resolution fit's, to solver
-      tolerance. `None` halves while the shorter side stays at least 24 px and the `init` lens's
-      largest circle at least 1 px (twice the half-pixel dead zone, where the render ignores the
-      lens), and stays at full resolution with `starts=1` (the init is solved there anyway).
-      `FitResult.levels` says how many levels ran; `num_steps` counts full-resolution steps only.
-    - `border`: which pixels along the photo's edges to leave out of the residual. A photo pixel
-      within a circle's reach of the edge receives light from outside the frame, which the
-      all-in-focus image lacks: the model puts zeros there (or, with `normalize`, rescales the
-      light that is in the frame), and neither is that light, so those pixels bias the fit (on a
-      ray-traced slanted plane, `K` came out 8-12 % small with them, 1.8 % without).
-      `"auto"` (default) or `True`: leave out the band the window reaches, the forward model's
-      `border_band(max_radius)` photo pixels (`ceil(max_radius)` for the default model, at every
-      `downsample`; two more with `footprint`), recomputed with the window (refits, each pyramid
-      level with its own) for every target. An int: that band in photo pixels (halved per
-      pyramid level, rounded up). `False` or `0`: keep every pixel. The band is a 0 weight
-      (multiplied into `weight`), so it shares the compiled solve. If it would leave no pixel
-      with non-zero weight, the fit keeps every pixel and says so in `message`.
-      `FitResult.border` is the band used (px), `FitResult.pixels_used` the pixels fitted.
-    - `tiles`: fit a large photo on informative tiles instead of the whole frame. `"auto"`
-      (default): photos of more than 2^20 pixels are fitted on square tiles (32 px, or twice
-      the window's reach where that is more) holding 2^17 pixels in all (per photo). The
-      starts are solved on a scout (the photo reduced to about 512 px; `pyramid=L` reduces it
-      `2^(L-1)` times, `pyramid=1` skips it), the tiles chosen greedily for the most
-      information about the free parameters at the scout's solution (D-optimal, from its
-      Jacobian), away from depth edges unless the model renders occlusion, and the
-      full-resolution solve starts from there; an int: that budget of pixels (at any photo
-      size); `None` or `False`: the whole frame. Each tile keeps a halo of the window's reach
-      with weight 0 (the border rule, per tile), so its pixels' residuals are exactly the
-      whole-frame fit's; the standard errors are those of the pixels used. `FitResult.tiles`
-      lists the tiles (`(row, column, height, width)`, photo pixels), `FitResult.levels` is 2
-      with a scout; `jaxdof/_fit/tiles.py` has the method.
+    - `shared`: the free fields with one value across targets (a focus bracket:
+      `shared=("focal_length", "f_number")`).
+    - `solver`: an optimistix least-squares solver; default Levenberg-Marquardt that also stops
+      when its next step is under a thousandth of a standard error (`jaxdof/_fit/lm.py`).
+    - `max_steps`: the solver's step limit per start.
+    - `weight`: per-pixel weights `>= 0` (inverse variances or a 0/1 mask), `(H, W)`,
+      `(T, H, W)` or the targets' shape.
+    - `max_radius`: the filter window (px, static); `None` sizes it from the starts' circles and
+      refits with a larger one if the solution's circles outgrow it.
+    - `allow_degenerate`: return a fit whose free fields the data cannot all determine
+      (`success=False`, `inf` standard errors) instead of raising.
+    - `exposure`, `vignetting`, `registration`: a gain and offset; a radial gain
+      `1 + a rho^2 + b rho^4`; a shift and magnification (focus breathing), per target.
+      `None` (default): fitted where a score test at the fit without it rejects and fitting it
+      explains more than the model's error (`select.with_nuisances`); `True`/`False` force it.
+      Vignetting and registration need the whole frame (`tiles=None`).
+    - `luma`: compare colour photos in their sRGB luma (a camera JPEG's colour is stored at half
+      resolution); `None` decides from the photo's colour detail.
+    - `starts`: the number of starts (default 4 with a free focus, else 3): `init`, then focus
+      powers spread over the scene's depths, solved in lockstep (`race.py`).
+    - `verbose`: `True` prints each step; a callable receives optimistix's `(name, value)` pairs.
+    - `model`: a `jaxdof.AbstractForwardModel` (default `jaxdof.DefocusModel`); `method`,
+      `footprint`, `downsample`: the default model's options (not with `model`).
+    - `pyramid`: coarse-to-fine levels (`None`: automatic; `1`: full resolution only). The result
+      is always the full-resolution fit's.
+    - `border`: `"auto"`/`True` leaves out the band the window reaches, an int that many photo
+      pixels, `False`/`0` none.
+    - `tiles`: `"auto"` fits a photo of more than 2^20 pixels on 2^17 pixels of informative tiles
+      (`jaxdof/_fit/tiles.py`); an int is that budget; `None`/`False` the whole frame.
+    - `edge_weight`: the weight ramping to 0 at depth edges: `None` decides, `False`, `True`, or a
+      width in photo pixels.
 
-    - `edge_weight`: the fit weight that ramps to 0 towards depth edges (`jaxdof.edge_weight`,
-      multiplied into `weight`): `None` (default) decides (see *Treatment*), `False` off, `True`
-      on with the automatic width, a number: on with that width (photo pixels).
-
-    **Treatment.** By default the fit inspects the depth map and the `init` lens and turns on
-    what a camera's photo of that scene needs (`jaxdof/_scene.py` has the rules;
-    `jaxdof.scene_treatment` says what they choose): where depth edges (jumps in depth, not
-    slopes: `jaxdof.depth_edges`) with circles over half a pixel touch more than 0.5 % of the
-    fitted pixels, the occlusion-aware render (`jaxdof.LocalOcclusion()`) and an edge weight
-    (width: the largest starting circle on those edges plus a pixel; dropped where it would leave
-    under 30 % of the weight); where the starting lens's median circle is under 40 px, the
-    footprint correction; and always the border. Then the photo has its say
-    (`jaxdof/_fit/select.py`): each choice is changed in turn (the occlusion render off, or on
-    where the depth has edges the start's circles did not make matter; then the footprint
-    correction off), solved from the lens found, and the change kept only where it lowers the
-    chi-square by more than 10 on the same pixels. So a photo made by `jaxdof.render` with any of its models
-    (its default, the plain `soft` scatter, included) comes back as its lens, and a camera's
-    photo keeps what it needs. `method`, `footprint` and `edge_weight` force a choice (no
-    selection on it); `FitResult.treatment` reports every choice, which were forced and what the
-    photo said (`selected`). A `model` of your own is fitted as it is (no edge weight unless
-    `edge_weight` asks; `model=jaxdof.DefocusModel()` fits exactly `jaxdof.render`'s default).
+    **Treatment.** By default the scene decides what is modelled (`jaxdof.scene_treatment`:
+    occlusion and an edge weight at depth edges, the footprint correction for small circles),
+    then the photo has its say (`jaxdof/_fit/select.py`): each choice, then each nuisance, is
+    kept only where it explains the photo better on the same pixels. A photo from
+    `jaxdof.render` comes back as its lens. `FitResult.treatment` and `FitResult.nuisances`
+    report every choice and why; `method`, `footprint`, `edge_weight` and the nuisance flags
+    force one.
 
     **Returns:** a `FitResult`. `success` says whether the lens and its standard errors can be
-    trusted. It is `False`, with the reason in `status` (a `jaxdof.RESULTS` member) and
-    `message`, when the best start did not converge, when distinct lenses fit equally well, when
-    the circles outgrow a given window, when the solver failed
-    (also when running it raised an error, e.g. a forward model's run-time check or a NaN under
-    `jax_debug_nans`: status `solver_failed`, the error's first line in `message`, the init
-    lens), or (with `allow_degenerate`) when the free set is not determined. The best start is
-    the lowest loss (a converged start tied with it preferred), so a start that stopped in a flat
-    region never decides the verdict.
-
-    **Focus at infinity** is an ordinary lens here: an `init` may have `focus_distance = inf`,
-    and a fit may end there (a free focus is reported as at most `1e12` times the nearest depth,
-    the farthest the fit's coordinate represents: circles within `1e-12` of infinity's). The
-    statistics are computed in the focus power `u = 1 / d_f`
-    (diopters): `FitResult.focus_power_stderr` is finite through infinity, and
-    `stderr["focus_distance"] = se(u) / u^2`, or `inf` when `u` is within one standard error of
-    0 (the data cannot rule out infinity; `message` says so).
+    trusted: converged, determined, unambiguous, and errors from the noise, or inflated to the
+    spread between tiles of the photo where they disagree on the lens (status `inconsistent`,
+    a model-adequacy test at level 0.01, `jaxdof.internal.adequacy`; `notes` name the likely
+    cause). Otherwise `status` (a `jaxdof.RESULTS` member) and `message` say why. Errors are
+    Gauss-Newton, `sigma^2 (J^T J)^{-1}`, in the focus power, so finite through infinity.
 
     **Raises:** `ValueError` for bad inputs (before any solve), and when the data cannot
-    determine the free fields (the column-scaled Jacobian at the best solution is rank
-    deficient; unless the photos contradict the model there, by the adequacy test, while they
-    determine the free set at the init lens: the fit ended in a flat region of the model, e.g. a
-    focus run to the focal length where every circle is the same size, and returns status
-    `degenerate` with a note saying so, no exception), with the reason:
-    `focal_length` and `f_number` both free from one photo (blur depends on the lens only
-    through `K = f^2 / (2 N (d_f - f))` and `d_f`); a focus at infinity (every circle
-    `f^2 / (2 N d p)`, so `f` and `N` only through `f^2 / N`, e.g. a bracket whose photos are all
-    focused at infinity); every circle under half a pixel (the render does not
-    depend on the lens, a zero Jacobian); else the undetermined fields by name.
+    determine the free fields, with the reason (`focal_length` and `f_number` both free from
+    one photo: blur depends on them only through `K = f^2 / (2 N (d_f - f))` and `d_f`; focus at
+    infinity; every circle under half a pixel).
 
-    **Statistics.** With `J` the Jacobian of the weighted residuals at the solution,
-    `cov = sigma^2 (J^T J)^{-1}` with `sigma^2 = SSR / (n - p)` (Gauss-Newton; `n` residuals with
-    non-zero weight, the border band left out; `p` free parameters), mapped from the solver's
-    coordinates to `(f, N, 1 / d_f)` and then to each field's units by the chain rule. For
-    Gaussian pixel noise these are the asymptotic (Cramér-Rao) errors.
-
-    **Does the model explain the photo?** Those errors know the pixel noise only. Every fit
-    therefore also tests, from the same residual and Jacobian (no extra solve), whether
-    independent tiles of the fitted region (a grid of about 8 x 8 px tiles, 3 to 8 per axis,
-    every photo and channel of a tile together, each tile also with its own gain and offset)
-    agree on one lens beyond their noise: Chow's test in score form, an F test at level 0.01
-    (`jaxdof.internal.adequacy`). Model error that differs over the photo (occlusion the model
-    does not render, vignetting, a border left in) makes the tiles disagree; then `status` is
-    `inconsistent` and the standard errors are inflated to the spread between the tiles (with
-    them the lens can be used: `success=True`; on the ray-traced studies every such fit's error
-    was within 2.1 of its inflated standard errors) (`FitResult.adequacy["inflation"]`, `stderr_kind == "tile spread"`). A model error
-    that every tile shares (a pentagonal aperture blurs like a smaller disc everywhere) cannot
-    show in such a test; `fits/results/adequacy.md` measures both.
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
     call = dict(locals())

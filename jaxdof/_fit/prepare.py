@@ -47,7 +47,7 @@ def check_differentiable(model: AbstractForwardModel) -> None:
             f"{model} cannot drive a fit: its output has no useful derivative with respect to the "
             "lens (for a DefocusModel: its method's output has none with respect to the circle "
             "radii, differentiable_in_radius is False). Use a method that has one, e.g. the "
-            "default 'soft' (or 'aperture', 'auto', 'occlusion')."
+            "default 'soft' (or 'aperture', 'auto', 'local_occlusion')."
         )
 
 

@@ -1,4 +1,4 @@
-r"""The fit's treatment of the scene, chosen from the scene and the starting lens (issue 21).
+r"""The fit's treatment of the scene, chosen from the scene and the starting lens.
 
 The rules themselves (`Treatment`, `choose_treatment`, their thresholds) are `jaxdof/_scene.py`'s,
 shared with `jaxdof.render(method="auto")`; here they meet the fit's problem: its weights, its

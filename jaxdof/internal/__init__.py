@@ -11,9 +11,8 @@ What is here (re-exports only):
   filter on a forced path (`exact_soft_filter(..., path="dense" | "spans" | "auto")`, and
   `spans_filter`), the dense soft gather without the input checks of `jaxdof.coc_filter`
   (`soft_filter`), the gather loops it is built from (`gather`, `symmetric_gather`, over
-  `tap_offsets(max_radius)`), and the kernels of the other methods (`hard_filter`,
-  `supersample_filter`, `jitter_filter`, `aperture_filter`, `layered_filter`, `tabulated_filter`,
-  several with a `path=` switch), all on a channels-last image `(H, W, C)` and a radius map
+  `tap_offsets(max_radius)`), and the kernels of the other methods (`supersample_filter`,
+  `jitter_filter`, `layered_filter`, `tabulated_filter`, several with a `path=` switch), all on a channels-last image `(H, W, C)` and a radius map
   already clamped to `max_radius`; the level helpers `unique_with_index`, `level_index`; and
   `choose_method` (also public as `jaxdof.choose_method`).
 - **Tuning**: `tuning`, the module of measured crossovers and cost constants
@@ -22,9 +21,8 @@ What is here (re-exports only):
 - **Fit helpers**: `auto_levels(shape, r_init)` (the automatic pyramid rule),
   `max_circle(lenses, depth)` (the largest circle of lenses over a depth map),
   `start_lenses(base, depth, *, free, starts, fcap=None)` (`fit_lens`'s starts),
-  `window_for(radius, cap)` (its window policy), `record_stages()` (time the compiled stages of
-  `fit_lens` calls: `with record_stages() as log: fit_lens(...)`), and the stages themselves
-  (`fit_starts`, `finish`, `run_stage`).
+  `record_stages()` (time the compiled stages of `fit_lens` calls:
+  `with record_stages() as log: fit_lens(...)`), and two of the stages (`fit_starts`, `finish`).
 - **Model adequacy**: `adequacy` (the between-tile test on a fit's residual and Jacobian),
   `rounding_noise` (its noise floor), `ADEQUACY_ALPHA` (its default significance level).
 - **Corrections**: `edge_distance` (distance to the nearest depth edge, under `jaxdof.edge_weight`),
@@ -36,7 +34,7 @@ What is here (re-exports only):
 - **Memory**: `estimate_memory` (a render's), `estimate_fit_memory` (a fit's; the CLI's
   `fit --memory`).
   `release_compiled_code` (drops the compiled executables once the process holds many memory
-  mappings: for long loops of compiles) and `memory_maps` (their count).
+  mappings: for long loops of compiles).
 - **Files**: `read_image` and `write_image`, the CLI's readers and writers (linear light;
   16-bit PNG and TIFF, sRGB encoding), for studies that make their scenes as files.
 - **Overlap**: `textbook_overlap`, the inclusion-exclusion form of the circle-pixel overlap that
@@ -45,24 +43,19 @@ What is here (re-exports only):
 
 # A renamed re-export is one ruff cannot tell from an unused import: hence the noqa below.
 from .. import _tuning as tuning  # noqa: F401
-from .._compiled import (
-    memory_maps as memory_maps,
-    release_compiled_code as release_compiled_code,
-)
+from .._compiled import release_compiled_code as release_compiled_code
 from .._corrections import (
     edge_distance as edge_distance,
     footprint_coefficient as footprint_coefficient,
     fourth_order_coefficients as fourth_order_coefficients,
     kernel_variance as kernel_variance,
 )
-from .._filters.aperture import aperture_filter as aperture_filter
 from .._filters.auto import choose_method as choose_method
 from .._filters.common import (
     level_index as level_index,
     tap_offsets as tap_offsets,
     unique_with_index as unique_with_index,
 )
-from .._filters.hard import hard_filter as hard_filter
 from .._filters.jitter import jitter_filter as jitter_filter
 from .._filters.layered import layered_filter as layered_filter
 from .._filters.soft import (
@@ -82,9 +75,7 @@ from .._fit import (
     fit_starts as fit_starts,
     max_circle as max_circle,
     record_stages as record_stages,
-    run_stage as run_stage,
     start_lenses as start_lenses,
-    window_for as window_for,
 )
 from .._fit.adequacy import (  # noqa: F401
     ALPHA as ADEQUACY_ALPHA,
