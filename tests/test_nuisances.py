@@ -149,12 +149,6 @@ def _noisy(clean, sigma, seed=1):
     return (clean + noise).astype(np.float32)
 
 
-@pytest.mark.xfail(
-    reason="issue 34, open: since the keep rule became `select.explained` (chi2 over the model's "
-    "error > 10), this 48 x 64 photo's registration (score 2526 on 3 dof) is not kept; the band "
-    "grown by the registration's reach leaves few pixels",
-    strict=False,
-)
 def test_registration_is_fitted_where_the_photo_is_shifted_and_magnified():
     """A photo 0.7 px off and magnified 1 % (focus breathing), 0.5 % noise: the score test asks
     for the registration, which comes back within 0.05 px and 0.1 %, and the lens within 1 %;
