@@ -7,7 +7,6 @@ comparison of a camera JPEG, chosen from the photo's colour detail."""
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 from jax.test_util import check_grads
 
 import jaxdof
