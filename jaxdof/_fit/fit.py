@@ -46,6 +46,7 @@ from .select import (
     alternatives,
     decisions,
     kept,
+    nuisance_floor,
     prefers,
     refit_call,
     rounding_sigma,
@@ -892,7 +893,7 @@ def fit_lens(
     # ... and in what the camera added: each nuisance fitted where a score test at the fit
     # without it rejects and it explains more than the model's error (`select.with_nuisances`),
     # the caller's choices as given ...
-    decided = with_nuisances(result, call, _fit_treated, rounding, asked)
+    decided = with_nuisances(result, call, _fit_treated, nuisance_floor(targets), asked)
     on = canonical(k for k, v in (decided.nuisances or {}).items() if v.get("fitted"))
     if on != call["nuisances"]:
         # ... and where the photo asked for one, the treatment asked again with it: a photo
@@ -900,9 +901,10 @@ def fit_lens(
         # at exposure x 0.85 dropped it, focus 5 % off).
         call = {**call, "nuisances": on, "test": ()}  # decided: no score tests again
         start = {"init": decided.lenses, "starts": 1, "pyramid": None}
+        same = same_pixels(decided)
         try:
-            again = _fit_treated(**{**call, **start, **same_pixels(decided)})
-            again = _photo_says(again, {**call, **same_pixels(decided)}, rounding)
+            again = _fit_treated(**{**call, **start, **same})
+            again = _photo_says(again, {**call, **same}, rounding)
         except ValueError:
             again = None
         result = decided if again is None else decisions(again, decided, asked)
@@ -1040,7 +1042,7 @@ def _fit_treated(
         # The score tests of the nuisances to decide, where the fit leaves something to explain
         # (`select.with_nuisances`); on tiles only those that do not depend on the whole frame.
         names = tuple(k for k in test if k not in p.spec.nuisances and not (chosen and k in FRAMED))
-        if names and float(info["sigma"]) >= rounding_sigma(targets, np.float32):
+        if names and float(info["sigma"]) >= nuisance_floor(targets):
             scores = run_stage(
                 "nuisance scores", nuisance_scores, model_r, solution, args, p.spec, names
             )

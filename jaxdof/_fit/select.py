@@ -116,6 +116,14 @@ def same_pixels(result: FitResult) -> dict:
     return out
 
 
+def nuisance_floor(targets) -> float:
+    """The residual standard deviation under which no nuisance is tested: float32's rounding of
+    the photos (`rounding_sigma`). A photo holds at most float32's digits (a camera's 16 bits, or
+    a float32 render); a float64 fit of a render stops at the solver's tolerance, far above
+    float64's rounding, and leaves no camera's nuisance to find."""
+    return rounding_sigma(targets, np.float32)
+
+
 def prefers(alt: FitResult, incumbent: FitResult, rounding: float) -> tuple[bool, float]:
     """Whether the photo prefers `alt` to `incumbent` (module docstring), and the chi-square
     difference `Delta chi^2` (positive: `alt` fits better). `rounding`: the residual standard
@@ -179,7 +187,7 @@ def kept(incumbent: FitResult, label: str, chi2: float) -> FitResult:
 
 
 def with_nuisances(
-    result: FitResult, call: dict, fit, rounding: float, asked: dict[str, bool | None]
+    result: FitResult, call: dict, fit, floor: float, asked: dict[str, bool | None]
 ) -> FitResult:
     """The fit with what the camera added (`photo.NUISANCES`) where the photo needs it (`fit`:
     `fit_lens`'s single-treatment fit; `asked`: the caller's choice per nuisance, `None` to
@@ -201,17 +209,11 @@ def with_nuisances(
         entries.setdefault(name, {"fitted": bool(value)})
         entries[name].update(forced=value is not None, chosen=False)
     tried: set[str] = set()
-    # A photo holds at most float32's digits (a camera's 16 bits, or a float32 render): a fit
-    # closer than float32's rounding of it (a float64 fit of a render stops at the solver's
-    # tolerance, far above float64's) leaves no camera's nuisance to find.
-    float32_floor = rounding * float(
-        np.finfo(np.float32).eps / np.finfo(np.asarray(result.loss).dtype).eps
-    )
     for _ in range(len(asked)):
         # A fit down to the float rounding (a render of the photo's own lens) leaves nothing
         # for a nuisance to explain, and its residual is the rounding, which is proportional to
-        # the values, so along the gain column: no test there (the floor of `prefers`).
-        if float(np.asarray(result.sigma)) < max(rounding, float32_floor):
+        # the values, so along the gain column: no test there (`nuisance_floor`).
+        if float(np.asarray(result.sigma)) < floor:
             for name in asked:
                 entries[name]["exact"] = not entries[name].get("chosen")
             break
