@@ -197,8 +197,8 @@ def with_nuisances(
     parameters (`solve.nuisance_scores`, chi-square with `q T` degrees of freedom where the
     photo has none of it; no refit) is tested at level `SELECT_ALPHA`. Where it rejects, the
     fit with the nuisance is solved (from the lens found) and kept where it lowers the
-    chi-square by more than `SELECT_CHI2` in units of the fit's model error (its residual
-    variance times its tiles' inflation squared, `explained`): a real photo rejects any model
+    chi-square by more than `SELECT_CHI2` in units of the model error (residual variance times
+    the tiles' inflation squared, the smaller of the two fits', `explained`): a real photo rejects any model
     at its noise level (a ray-traced photo asked for a registration of 0.01 px), and a
     nuisance must explain more than what the model already lacks.
     Forward selection: the most significant rejection first, the others tested again at the
@@ -285,16 +285,25 @@ def decisions(final: FitResult, decided: FitResult, asked: dict[str, bool | None
 
 def explained(refit: FitResult, base: FitResult) -> float:
     """How much of `base`'s misfit `refit` explains: the chi-square difference on the same pixels
-    (as `prefers`) in units of `base`'s model error, its residual variance times the square of its
-    tiles' inflation (1 where its tiles agree): the noise as the photo's whole misfit sees it."""
+    (as `prefers`) in units of the model error, a fit's residual variance times the square of its
+    tiles' inflation (1 where its tiles agree), the smaller of the two fits' (as `prefers` takes
+    the smaller noise): where the nuisance is what the model lacked, the fit without it has its
+    tiles disagree because of it, and its model error would divide the gain by the misfit the
+    nuisance removes."""
     n0, n1 = _residuals(base), _residuals(refit)
     l0, l1 = float(np.asarray(base.loss)), float(np.asarray(refit.loss))
     if not (np.isfinite(l0) and np.isfinite(l1)) or min(n0, n1) <= 0:
         return -math.inf
-    inflation = float(np.asarray(base.adequacy["inflation"]))
-    inflation = inflation if math.isfinite(inflation) else 1.0
-    sigma2 = max(float(np.asarray(base.sigma)) ** 2 * inflation**2, np.finfo(np.float64).tiny)
+    sigma2 = max(min(_model_error(base), _model_error(refit)), np.finfo(np.float64).tiny)
     return min(n0, n1) * (2 * l0 / n0 - 2 * l1 / n1) / sigma2
+
+
+def _model_error(result: FitResult) -> float:
+    """The residual variance times the square of the tiles' inflation (`math.inf` if unknown)."""
+    inflation = float(np.asarray((result.adequacy or {}).get("inflation", math.nan)))
+    inflation = inflation if math.isfinite(inflation) else 1.0
+    sigma2 = float(np.asarray(result.sigma)) ** 2 * inflation**2
+    return sigma2 if math.isfinite(sigma2) else math.inf
 
 
 def _from(result: FitResult, call: dict) -> dict:
