@@ -7,6 +7,20 @@ from ._batch import (
     render_batch as render_batch,
     shard_batch as shard_batch,
 )
+from ._chart import (
+    Chart as Chart,
+    ChartCalibration as ChartCalibration,
+    ChartError as ChartError,
+    ChartPose as ChartPose,
+    ChartView as ChartView,
+    calibrate as calibrate,
+    chart_scene as chart_scene,
+    detect_chart as detect_chart,
+    make_chart as make_chart,
+    read_chart as read_chart,
+    write_chart as write_chart,
+)
+from ._compiled import enable_compilation_cache as enable_compilation_cache
 from ._corrections import (
     depth_edges as depth_edges,
     edge_weight as edge_weight,

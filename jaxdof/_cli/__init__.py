@@ -1,5 +1,6 @@
-"""The `jaxdof` command line: `demo`, `render`, `fit` and `info`, a thin layer over `_io`,
-`_exif` and the library.
+"""The `jaxdof` command line: `demo`, `render`, `fit`, `info`, `chart` (a calibration chart's
+files) and `calibrate` (a lens from photos of it), a thin layer over `_io`, `_exif` and the
+library.
 
 `parse` builds the parser, `commands` runs a command, `report` prints results, `progress` shows
 what a command is doing while it works (a live line on a terminal, plain lines in a log),
@@ -18,12 +19,34 @@ import sys
 from collections.abc import Sequence
 
 from .._allocator import retain_freed_memory
+from .._compiled import enable_compilation_cache
 from .._io import InputError
-from .commands import run_demo, run_fit, run_info, run_render
+from .commands import run_calibrate, run_chart, run_demo, run_fit, run_info, run_render
 from .parse import build_parser
 
 
-_COMMANDS = {"demo": run_demo, "render": run_render, "fit": run_fit, "info": run_info}
+_COMMANDS = {
+    "demo": run_demo,
+    "render": run_render,
+    "fit": run_fit,
+    "info": run_info,
+    "chart": run_chart,
+    "calibrate": run_calibrate,
+}
+
+
+def _compilation_cache(command: str) -> None:
+    """The persistent compilation cache (`jaxdof.enable_compilation_cache`), unless one is set
+    up already (JAX's `JAX_COMPILATION_CACHE_DIR`, or a test session's); a folder that cannot be
+    written costs the speed, not the command: one line on stderr."""
+    import jax
+
+    if getattr(jax.config, "jax_compilation_cache_dir", None) is not None:
+        return
+    try:
+        enable_compilation_cache()
+    except ValueError as err:
+        print(f"jaxdof {command}: warning: {err}", file=sys.stderr)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -33,7 +56,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         args = parser.parse_args(None if argv is None else list(argv))
     except SystemExit as exc:  # --help, --version, or a one-line usage error
         return int(exc.code or 0)
-    if args.command not in ("render", "fit"):  # those decide by the frame's size (`commands`)
+    if getattr(args, "cache", False):
+        _compilation_cache(args.command)
+    if args.command not in ("render", "fit", "calibrate"):  # those decide by the frame's size
         # the application's call (see `jaxdof.retain_freed_memory`): XLA's per-call scratch is
         # then reused instead of faulted in anew, up to 2x on megapixel images
         retain_freed_memory()

@@ -237,6 +237,17 @@ def _add_lens_options(p: argparse.ArgumentParser, *, start: bool) -> None:
     )
 
 
+def _add_cache_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--no-cache",
+        dest="cache",
+        action="store_false",
+        help="compile every program anew: do not keep them in (or load them from) the cache "
+        "folder ($JAXDOF_CACHE_DIR, else $XDG_CACHE_HOME/jaxdof, else ~/.cache/jaxdof), which "
+        "makes the same command on photos of the same size start in seconds",
+    )
+
+
 def _add_file_options(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group(
         "files",
@@ -387,6 +398,7 @@ def _add_demo(sub) -> None:
     )
     demo.add_argument("--out", default="demo.png", metavar="PNG", help="figure path (demo.png)")
     demo.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _add_cache_option(demo)
 
 
 def _add_render(sub) -> None:
@@ -415,6 +427,7 @@ def _add_render(sub) -> None:
         "more is rendered in bands of rows (the same pixels), as high as the budget allows",
     )
     render.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _add_cache_option(render)
     _add_lens_options(render, start=False)
     _add_filter_options(render)
     _add_file_options(render)
@@ -537,6 +550,7 @@ def _add_fit(sub) -> None:
     )
     fit.add_argument("--plot", metavar="PNG", help="write a comparison figure (needs matplotlib)")
     fit.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _add_cache_option(fit)
     fit.add_argument(
         "--no-exif",
         action="store_true",
@@ -571,8 +585,130 @@ def _add_info(sub) -> None:
     )
 
 
+PAPERS = {"a4": (0.297, 0.210), "a3": (0.420, 0.297), "letter": (0.2794, 0.2159)}  # landscape
+_SIZE = re.compile(r"^\s*(\d+\.?\d*|\.\d+)\s*[xX]\s*(\d+\.?\d*|\.\d+)\s*(mm|cm|m)\s*$")
+_PIXELS = re.compile(r"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
+
+
+def parse_size(text: str) -> tuple[float, float]:
+    """`chart --size`: `WxH` with a unit, e.g. `297x210mm`, to metres."""
+    match = _SIZE.match(text)
+    if match is None:
+        raise argparse.ArgumentTypeError(
+            f"bad size {text!r}: give width x height with a unit, e.g. 297x210mm"
+        )
+    w, h = (float(match.group(k)) * _UNITS[match.group(3)] for k in (1, 2))
+    if not (w > 0 and h > 0):
+        raise argparse.ArgumentTypeError(f"bad size {text!r}: must be positive")
+    return w, h
+
+
+def parse_pixels(text: str) -> tuple[int, int]:
+    """`chart --screen-px`: `WxH` in pixels, e.g. `3840x2160`."""
+    match = _PIXELS.match(text)
+    if match is None or min(int(match.group(1)), int(match.group(2))) < 64:
+        raise argparse.ArgumentTypeError(
+            f"bad screen size {text!r}: give width x height in pixels, e.g. 3840x2160"
+        )
+    return int(match.group(1)), int(match.group(2))
+
+
+_EPILOG_CHART = """\
+examples:
+  jaxdof chart a4chart                       # a4chart.png, a4chart.pdf, a4chart.json
+  jaxdof chart big --paper a3 --dpi 300 --seed 7
+  jaxdof chart screen --monitor --screen-px 3840x2160 --screen-width 0.6m
+
+Print the PDF at 100 % (actual size) on matte paper and check its size with a ruler; a
+screen's chart is shown from the PNG full screen, one image pixel per screen pixel.
+Then photograph it tilted by 10 degrees or more, and run jaxdof calibrate.
+"""
+
+_EPILOG_CALIBRATE = """\
+examples:
+  jaxdof calibrate photo.jpg --chart a4chart.json               # lens from EXIF
+  jaxdof calibrate photo.tif --chart a4chart.json --focal-length 50mm --sensor-width 36mm
+  jaxdof calibrate a.jpg b.jpg c.jpg --chart a4chart.json --json  # a focus bracket
+
+The chart gives the fit its all-in-focus image and depth map: its markers give its pose, its
+texture the blur. The chart must be tilted by 10 degrees or more (a depth range), and every
+photo of one run taken from where the first was (a tripod). From one photo the blur scale and
+the focus distance are measured; the f-number follows from the focal length held.
+"""
+
+
+def _add_chart(sub) -> None:
+    chart = sub.add_parser(
+        "chart",
+        help="make a calibration chart to print or show on a screen (PNG, PDF, JSON sidecar)",
+        description="Write a calibration chart: ArUco markers around a dead-leaves texture, as "
+        "STEM.png (16-bit), STEM.pdf at its printed size, and STEM.json, the sidecar that "
+        "jaxdof calibrate reads.",
+        epilog=_EPILOG_CHART,
+        formatter_class=_FORMAT,
+    )
+    chart.add_argument("stem", metavar="STEM", help="the files' path without a suffix")
+    size = chart.add_mutually_exclusive_group()
+    size.add_argument(
+        "--paper", choices=sorted(PAPERS), default=None, help="paper, landscape (default a4)"
+    )
+    size.add_argument("--size", type=parse_size, metavar="WxH", help="size, e.g. 250x180mm")
+    chart.add_argument("--dpi", type=parse_positive, default=300, help="print resolution (300)")
+    chart.add_argument("--seed", type=int, default=0, help="the texture's seed (0)")
+    chart.add_argument(
+        "--monitor",
+        action="store_true",
+        help="a chart for a screen (needs --screen-px, --screen-width)",
+    )
+    chart.add_argument("--screen-px", type=parse_pixels, metavar="WxH", help="e.g. 3840x2160")
+    chart.add_argument(
+        "--screen-width",
+        type=parse_length,
+        metavar="LEN",
+        help="the screen's visible width, e.g. 0.6m",
+    )
+    chart.add_argument("--overwrite", action="store_true", help="replace files that exist")
+
+
+def _add_calibrate(sub) -> None:
+    cal = sub.add_parser(
+        "calibrate",
+        help="calibrate a lens from photos of a chart made by jaxdof chart",
+        description="Find the chart in each PHOTO, build its all-in-focus image and depth map, "
+        "and fit the lens (focus distance and blur scale) as jaxdof fit does.",
+        epilog=_EPILOG_CALIBRATE,
+        formatter_class=_FORMAT,
+    )
+    cal.add_argument("photos", metavar="PHOTO", nargs="+", help="photo(s) of the chart")
+    cal.add_argument("--chart", required=True, metavar="JSON", help="the chart's sidecar")
+    cal.add_argument(
+        "--focal-length",
+        type=parse_focal_length,
+        metavar="LEN",
+        help="the lens's focal length, e.g. 50mm (default: the first PHOTO's EXIF)",
+    )
+    cal.add_argument(
+        "--sensor-width",
+        type=parse_length,
+        metavar="LEN",
+        help="the sensor width the photo spans, e.g. 36mm (default: from EXIF); with "
+        "--focal-length it fixes the camera's focal length in pixels, else the markers do",
+    )
+    cal.add_argument("--linear", action="store_true", help="take integer photo files as linear")
+    cal.add_argument("--no-exif", action="store_true", help="ignore the photos' EXIF metadata")
+    cal.add_argument(
+        "--json",
+        action="store_true",
+        help="print one JSON object on stdout: fit's, with the chart's findings under \"chart\"",
+    )
+    cal.add_argument("--plot", metavar="PNG", help="write a comparison figure (needs matplotlib)")
+    cal.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    _add_cache_option(cal)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    """The `jaxdof` parser; `args.command` names the command (`demo`, `render`, `fit`, `info`)."""
+    """The `jaxdof` parser; `args.command` names the command (`demo`, `render`, `fit`, `info`,
+    `chart`, `calibrate`)."""
     from .. import __version__
 
     parser = Parser(
@@ -589,4 +725,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_render(sub)
     _add_fit(sub)
     _add_info(sub)
+    _add_chart(sub)
+    _add_calibrate(sub)
     return parser
