@@ -1,5 +1,5 @@
-"""The commands `demo`, `render`, `fit` and `info`: read and check the files, call the library,
-report.
+"""The commands `demo`, `render`, `fit`, `info`, `chart` and `calibrate`: read and check the
+files, call the library, report.
 
 The CLI checks what only it can know: the files (paths, shapes, an output over an input), the
 figure path, and combinations of its options. Everything about the values (a focus beyond the
@@ -753,3 +753,123 @@ def run_demo(args) -> int:
         print(f"wrote {path}")
     print(f"total {time.perf_counter() - t0:.1f} s")
     return 0 if result.success else 1
+
+
+# ----------------------------------------------------------------------------------------------
+# chart and calibrate
+
+
+def run_chart(args) -> int:
+    """`jaxdof chart`: design a chart and write its PNG, PDF (printed charts) and sidecar."""
+    from .parse import PAPERS
+
+    if args.monitor:
+        if args.screen_px is None or args.screen_width is None:
+            raise InputError("--monitor needs --screen-px (e.g. 3840x2160) and --screen-width")
+        if args.paper or args.size:
+            raise InputError("--monitor takes the screen's size, not --paper or --size")
+        options: dict[str, Any] = dict(
+            monitor=True, screen_px=args.screen_px, screen_width_m=args.screen_width
+        )
+    else:
+        if args.screen_px is not None or args.screen_width is not None:
+            raise InputError("--screen-px and --screen-width go with --monitor")
+        w, h = args.size if args.size else PAPERS[args.paper or "a4"]
+        options = dict(width_m=w, height_m=h, dpi=args.dpi)
+    with library_checks():
+        chart, raster = jaxdof.make_chart(seed=args.seed, **options)
+        paths = jaxdof.write_chart(args.stem, chart, raster, overwrite=args.overwrite)
+    nx, ny = chart.texture_px
+    where = "a screen" if chart.monitor else f"{chart.dpi:g} dpi"
+    print(
+        f"wrote {', '.join(str(p) for p in paths)} ({chart.width_m * 1e3:.1f} x "
+        f"{chart.height_m * 1e3:.1f} mm, {nx} x {ny} px for {where}, {len(chart.markers)} "
+        f"{chart.dictionary} markers, seed {chart.seed})"
+    )
+    return 0
+
+
+def _calibrate_exif(args, path: str) -> ExifLens | None:
+    if args.no_exif or _suffix(path) not in EXIF_SUFFIXES:
+        return None
+    try:
+        exif = read_exif(path)
+    except ValueError as err:
+        note(f"{err}; its EXIF is not used")
+        return None
+    return exif if exif.has_lens else None
+
+
+def run_calibrate(args) -> int:
+    """`jaxdof calibrate`: find the chart in each photo (before anything is compiled), then fit."""
+    with library_checks():
+        chart, raster = jaxdof.read_chart(args.chart)
+    plot.check_plot(args.plot, [args.chart, *args.photos], "--plot")
+    photos, views = [], []
+    with Display.for_stderr(args.quiet) as display:
+        for path in args.photos:
+            display.status(f"reading {path}")
+            photo = read_image(path, linear=args.linear, option="PHOTO").array
+            if photos and photo.shape != photos[0].shape:
+                raise InputError(
+                    f"{path}: shape {photo.shape}, the first PHOTO's is {photos[0].shape}; "
+                    "the photos must match"
+                )
+            display.status(f"finding the chart in {path}")
+            with library_checks():
+                views.append(jaxdof.detect_chart(photo, chart, name=path))
+            photos.append(photo)
+        exifs = [_calibrate_exif(args, p) for p in args.photos]
+        shape = photos[0].shape
+        pitch = None if args.sensor_width is None else args.sensor_width / shape[1]
+        luma = True if any(chroma_subsampled(p) for p in args.photos) else None
+        display.status("preparing and compiling the fit")
+        with library_checks(), out_of_memory("fit", shape):
+            cal = jaxdof.calibrate(
+                photos if len(photos) > 1 else photos[0],
+                chart,
+                raster,
+                focal_length=args.focal_length,
+                pixel_pitch=pitch,
+                exif=exifs,
+                views=views,
+                luma=luma,
+            )
+    summary = report.fit_summary(cal.fit)
+    summary["chart"] = cal.to_dict()
+    if not args.json:
+        for path, entry in zip(args.photos, summary["chart"]["photos"]):
+            print(
+                f"{path}: {entry['markers']} markers, homography error "
+                f"{entry['reprojection_error_px']:.2f} px, tilt {entry['tilt_deg']:.1f} deg, "
+                f"chart at {entry['distance_m']:.3g} m"
+            )
+        near, far = cal.depth_range
+        print(
+            f"camera: focal length {cal.focal_px:.1f} px (from the {cal.intrinsics}), chart "
+            f"depths {near:.3g}-{far:.3g} m"
+        )
+    pixels = len(photos) * int(np.prod(shape[:2]))
+    report.print_fit(
+        summary, args.photos, ("focus_distance", "f_number"), as_json=args.json, pixels=pixels
+    )
+    if args.plot:
+        sharp, depth = jaxdof.chart_scene(chart, raster, cal.poses[0], cal.camera, shape)
+        if len(shape) == 3:
+            sharp = np.repeat(sharp[..., None], shape[2], axis=-1)
+        t = cal.fit.treatment
+        assert t is not None  # fit_lens always reports its treatment
+        with Display.for_stderr(args.quiet) as display, out_of_memory("fit", shape):
+            display.status(f"drawing {args.plot}")
+            plot.plot_fit(
+                args.plot,
+                sharp,
+                jaxdof.fill_depth_holes(depth),
+                photos,
+                cal.fit,
+                args.photos,
+                [args.chart, *args.photos],
+                render_options=dict(method=t.method, footprint=t.footprint, downsample=1),
+            )
+        note(f"wrote {args.plot}")
+    return 0 if summary["success"] else 1

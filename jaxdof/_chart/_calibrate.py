@@ -1,0 +1,279 @@
+r"""`calibrate`: the lens from photos of a chart: find the chart, solve the camera and the pose,
+build the chart's all-in-focus image and depth in each photo's frame, and fit the lens with
+`jaxdof.fit_lens`."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from jaxtyping import Float
+
+from .._exif import ExifLens
+from .._fit import FitResult, fit_lens
+from .._lens import ThinLens
+from ._design import Chart
+from ._detect import ChartView, detect_chart
+from ._geometry import (
+    ChartError,
+    ChartPose,
+    camera_matrix,
+    chart_pose,
+    chart_scene,
+    focal_from_homographies,
+    refine_focal,
+)
+
+
+_MIN_TILT = 10.0  # degrees: a chart closer to facing the camera gives too little depth range
+# Photos of one scene (a focus bracket): their chart corners agree, once a magnification about
+# the centre (focus breathing) is taken out, within this many pixels plus this share of the
+# chart's extent in the photo.
+_SAME_PX, _SAME_SHARE = 2.0, 0.01
+_F_NUMBER = 4.0  # the starting f-number when EXIF has none
+
+
+@dataclasses.dataclass(frozen=True)
+class ChartCalibration:
+    """What `calibrate` found and fitted.
+
+    **Fields:**
+
+    - `fit`: the `jaxdof.FitResult` of `jaxdof.fit_lens` (`fit.lens`, `fit.stderr`, ...).
+    - `views`: the chart found in each photo (`ChartView`: markers, homography, its error).
+    - `poses`: the chart's pose in each photo (`ChartPose`; `tilt` in degrees).
+    - `camera`: the intrinsic matrix `K` (pixels) used.
+    - `focal_px`: its focal length (pixels): the lens-to-sensor distance over the pixel pitch.
+    - `intrinsics`: where `focal_px` came from: `"focal length and pixel pitch"` or
+      `"homographies"`.
+    - `init`: the starting lens (one per photo).
+    - `depth_range`: the chart's nearest and farthest z-depth (m) in the first photo.
+    """
+
+    fit: FitResult
+    views: tuple[ChartView, ...]
+    poses: tuple[ChartPose, ...]
+    camera: Float[np.ndarray, "3 3"]
+    focal_px: float
+    intrinsics: str
+    init: tuple[ThinLens, ...]
+    depth_range: tuple[float, float]
+
+    @property
+    def lens(self) -> ThinLens:
+        """The fitted lens (`fit.lens`)."""
+        return self.fit.lens
+
+    def to_dict(self) -> dict[str, Any]:
+        """The chart's part as JSON-ready values (SI units, angles in degrees): per photo the
+        markers found, the homography's error (px), the tilt and the pose; the intrinsics."""
+        return {
+            "focal_px": self.focal_px,
+            "intrinsics": self.intrinsics,
+            "depth_range": list(self.depth_range),
+            "photos": [
+                {
+                    "markers": v.markers,
+                    "inliers": v.inliers,
+                    "reprojection_error_px": v.error,
+                    "cover": v.cover,
+                    "tilt_deg": p.tilt,
+                    "distance_m": float(np.linalg.norm(p.translation)),
+                    "rotation": p.rotation.tolist(),
+                    "translation_m": p.translation.tolist(),
+                    "homography": v.homography.tolist(),
+                }
+                for v, p in zip(self.views, self.poses)
+            ],
+        }
+
+
+def calibrate(
+    photos: np.ndarray | Sequence[np.ndarray],
+    chart: Chart,
+    image: Float[np.ndarray, "ch cw"],
+    *,
+    focal_length: float | int | None = None,
+    pixel_pitch: float | int | None = None,
+    exif: ExifLens | Sequence[ExifLens | None] | None = None,
+    init: ThinLens | Sequence[ThinLens] | None = None,
+    views: Sequence[ChartView] | None = None,
+    **fit_options,
+) -> ChartCalibration:
+    r"""Calibrate a lens from photos of a chart (`make_chart`): the chart gives the fit its
+    all-in-focus image and depth map.
+
+    **Arguments:**
+
+    - `photos`: one photo `(H, W)`/`(H, W, C)` (linear light) or several of one scene (a focus
+      bracket taken from a tripod: the chart where it was).
+    - `chart`, `image`: the chart and its raster (`read_chart`).
+    - `focal_length`, `pixel_pitch`: the lens's focal length and the photo's pixel pitch (m),
+      where known; they override `exif`.
+    - `exif`: the photos' `jaxdof.ExifLens` (one, or one per photo): focal length, f-number,
+      focus distance and pixel pitch where recorded.
+    - `init`: the starting lens (one, or one per photo); default from the values above.
+    - `views`: the chart as already found in each photo (`detect_chart`); default: found here.
+    - `fit_options`: passed to `jaxdof.fit_lens` (`free`, `shared`, `verbose`, the nuisances,
+      ...): its defaults otherwise, so exposure, vignetting, registration and luma are decided
+      from the photos.
+
+    **Returns:** a `ChartCalibration`: the `FitResult` and what the chart told.
+
+    **Method.** The homographies give the camera's focal length in pixels `f_px`, the distance
+    from the lens to the sensor over the pixel pitch (`focal_from_homographies`, with square
+    pixels and the principal point at the centre), unless the focal length `f` and the pitch
+    `p` are known: then `f_px = s / p` with the thin lens's `s = f d / (d - f)` at the focus
+    distance `d` (EXIF's, else the chart's median depth). Each photo's pose (`chart_pose`), the
+    first photo's chart image and z-depth (`chart_scene`; off the chart: holes, left out of the
+    fit with the pixels their circles reach), then `fit_lens` on the photos. The starting lens:
+    EXIF's focal length, f-number and focus distance where recorded, else focus at the chart's
+    median depth, f/4, and `f = 1 / (1 / s + 1 / d)` from `s = f_px p`. Only the blur scale
+    (`ThinLens.blur_scale`) and the focus distance are measured from one photo; the f-number
+    follows from the focal length held.
+
+    **Raises:** `ChartError` (a `ValueError`, one line) when a photo does not show the chart
+    usably (`detect_chart`), the chart faces the camera within 10 degrees (too little depth
+    range: it says the tilt found), the photos show it in different places (not one scene), or
+    the pixel pitch is unknown (give `pixel_pitch`, or `focal_length`, or a sensor width).
+    """
+    many = not (isinstance(photos, np.ndarray) and photos.ndim in (2, 3))
+    photos = [np.asarray(p) for p in photos] if many else [np.asarray(photos)]
+    if not photos:
+        raise ValueError("calibrate needs at least one photo")
+    shape = photos[0].shape
+    if any(p.shape != shape for p in photos):
+        raise ValueError(f"the photos differ in shape: {[p.shape for p in photos]}")
+    n = len(photos)
+    exifs = list(exif) if isinstance(exif, Sequence) else [exif] * n
+    if len(exifs) != n:
+        raise ValueError(f"exif: {len(exifs)} given for {n} photos")
+    found = list(views) if views is not None else [detect_chart(p, chart) for p in photos]
+    _one_scene(found)
+    first = exifs[0] or ExifLens()
+    h, w = shape[:2]
+    f = focal_length if focal_length is not None else first.focal_length
+    if pixel_pitch is None:
+        width = first.sensor_width(w, h)
+        pixel_pitch = None if width is None else width / w
+    focus = first.focus_distance
+    focus = (
+        focus if focus is not None and math.isfinite(focus) and (f is None or focus > f) else None
+    )
+    if f is not None and pixel_pitch is not None:
+        f_px, source = _focal_px(found[0], f, pixel_pitch, focus), "focal length and pixel pitch"
+    else:
+        f_px = focal_from_homographies([v.homography for v in found], shape)
+        if f_px is None:
+            raise ChartError(
+                "the chart faces the camera too squarely to give the focal length in pixels: "
+                f"tilt it by {_MIN_TILT:.0f} degrees or more, or give the focal length and the "
+                "pixel pitch"
+            )
+        f_px = refine_focal(found, f_px)
+        source = "homographies"
+    if pixel_pitch is None and f is None and init is None:
+        raise ChartError(
+            "the pixel pitch is unknown (no EXIF focal-plane resolution or 35 mm equivalent): "
+            "give the sensor width or the focal length"
+        )
+    camera = camera_matrix(f_px, shape)
+    poses = [chart_pose(v.points.reshape(-1, 2), v.corners.reshape(-1, 2), camera) for v in found]
+    tilt = min(p.tilt for p in poses)
+    if tilt < _MIN_TILT:
+        raise ChartError(_facing(tilt))
+    sharp, depth = chart_scene(chart, image, poses[0], camera, shape)
+    near, far = float(np.nanmin(depth)), float(np.nanmax(depth))
+    median = float(np.nanmedian(depth))
+    if init is None:
+        init = [_start(e or ExifLens(), f, pixel_pitch, f_px, median) for e in exifs]
+    inits = tuple(init) if isinstance(init, Sequence) else (init,) * n
+    if photos[0].ndim == 3:
+        sharp = np.repeat(sharp[..., None], shape[2], axis=-1)
+    targets = photos[0] if n == 1 else np.stack(photos)
+    start = list(inits) if n > 1 else inits[0]
+    fit = fit_lens(sharp, depth, targets, start, **fit_options)
+    return ChartCalibration(
+        fit=fit,
+        views=tuple(found),
+        poses=tuple(poses),
+        camera=camera,
+        focal_px=float(f_px),
+        intrinsics=source,
+        init=inits,
+        depth_range=(near, far),
+    )
+
+
+def _start(
+    exif: ExifLens, f: float | None, pitch: float | None, f_px: float, median: float
+) -> ThinLens:
+    """The starting lens: EXIF's f-number and focus distance, else f/4 focused at the chart's
+    median depth; the focal length `f`, else the thin lens's `1 / (1 / s + 1 / d)` with
+    `s = f_px p`; the pitch `p`, else `s / f_px` with `s` the image distance of `f` at `d`."""
+    if f is None:
+        assert pitch is not None  # `calibrate` has checked
+        f = 1 / (1 / (f_px * pitch) + 1 / median)
+    if pitch is None:
+        pitch = _pitch(f, f_px, median)
+    d = exif.focus_distance
+    d = d if d is not None and d > f else median
+    return ThinLens(f, exif.f_number or _F_NUMBER, d, pitch)
+
+
+def _facing(tilt: float) -> str:
+    return (
+        f"the chart faces the camera within {tilt:.1f} degrees (tilt it by {_MIN_TILT:.0f} or "
+        "more about a vertical or horizontal axis, so its depth varies across the frame)"
+    )
+
+
+def _focal_px(view: ChartView, f: float, pitch: float, focus: float | None) -> float:
+    """`s / p` with the thin lens's image distance `s = f d / (d - f)` at the focus distance `d`
+    (given, else the chart's median distance from a first pose at `f / p`)."""
+    if focus is None:
+        camera = camera_matrix(f / pitch, view.shape)
+        pose = chart_pose(view.points.reshape(-1, 2), view.corners.reshape(-1, 2), camera)
+        focus = float(
+            pose.translation[2] + pose.rotation[2, :2] @ view.points.reshape(-1, 2).mean(0)
+        )
+        focus = max(focus, 2 * f)
+    return f * focus / (focus - f) / pitch
+
+
+def _pitch(f: float, f_px: float, d: float) -> float:
+    """The pixel pitch of a camera of focal length `f` focused at `d` with `f_px`."""
+    return f * d / (d - f) / f_px
+
+
+def _one_scene(views: list[ChartView]) -> None:
+    """`ChartError` unless the chart is where it was in every photo (a magnification about the
+    centre aside)."""
+    if len(views) < 2:
+        return
+    ref = views[0]
+    h, w = ref.shape
+    centre = np.array([(w - 1) / 2, (h - 1) / 2])
+    corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    pts = ref.points.reshape(-1, 2)
+    lo, hi = pts.min(0), pts.max(0)
+    outline = lo + corners * (hi - lo)
+
+    def project(v):
+        p = np.column_stack([outline, np.ones(4)]) @ v.homography.T
+        return p[:, :2] / p[:, 2:] - centre
+
+    a = project(ref)
+    extent = float(np.linalg.norm(a.max(0) - a.min(0)))
+    for k, v in enumerate(views[1:], start=1):
+        b = project(v)
+        scale = float(np.sum(a * b) / np.sum(a * a))
+        off = float(np.abs(b - scale * a).max())
+        if off > _SAME_PX + _SAME_SHARE * extent:
+            raise ChartError(
+                f"photo {k + 1} shows the chart {off:.0f} px from where photo 1 does: the photos "
+                "must be of one scene (a focus bracket from a tripod); calibrate each on its own"
+            )

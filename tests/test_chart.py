@@ -1,0 +1,318 @@
+"""The calibration chart: its design and files, finding it in a photo, its plane in the camera,
+its scene (image and depth), and `calibrate` end to end, on small synthetic photos: the chart
+warped by a known pose and blurred by `jaxdof.render`."""
+
+import math
+
+import numpy as np
+import pytest
+
+import jaxdof
+from jaxdof._chart._geometry import _footprint, camera_matrix, focal_from_homographies
+
+
+SHAPE = (240, 320)
+F_PX = 380.0  # the camera's focal length in pixels (lens-to-sensor distance / pitch)
+FOCAL = 0.025  # m
+
+
+def _rotation(ax: float, ay: float) -> np.ndarray:
+    """A tilt of `ax` degrees about the camera's x axis, then `ay` about its y axis."""
+    a, b = math.radians(ax), math.radians(ay)
+    rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+    ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
+    return ry @ rx
+
+
+def _pose(chart, ax, ay, distance) -> jaxdof.ChartPose:
+    """The chart's centre on the optical axis at `distance` (m), tilted by `ax`, `ay` degrees."""
+    r = _rotation(ax, ay)
+    centre = np.array([chart.width_m / 2, chart.height_m / 2, 0])
+    return jaxdof.ChartPose(r, np.array([0, 0, distance]) - r @ centre)
+
+
+def _lens(f_number, focus):
+    """A thin lens whose image distance at `focus` is `F_PX` pixels."""
+    s = FOCAL * focus / (focus - FOCAL)
+    return jaxdof.ThinLens(FOCAL, f_number, focus, s / F_PX)
+
+
+def _photo(scene, lens, noise=0.0, seed=0):
+    sharp, depth = scene
+    filled = jaxdof.fill_depth_holes(depth).astype(np.float32)
+    photo = np.asarray(jaxdof.render(sharp, filled, lens))
+    if noise:
+        photo = photo + np.random.default_rng(seed).normal(0, noise, photo.shape)
+    return photo.astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def chart():
+    return jaxdof.make_chart(dpi=40, seed=1, marker_fraction=0.2)
+
+
+@pytest.fixture(scope="module")
+def tilted(chart):
+    """The chart tilted by about 38 degrees, 0.45 m away: pose, camera, scene."""
+    pose = _pose(chart[0], 15, 35, 0.45)
+    camera = camera_matrix(F_PX, SHAPE)
+    return pose, camera, jaxdof.chart_scene(*chart, pose, camera, SHAPE)
+
+
+# ----------------------------------------------------------------------------------------------
+# Design and files
+
+
+def test_design_is_deterministic(chart):
+    c, raster = chart
+    c2, raster2 = jaxdof.make_chart(dpi=40, seed=1, marker_fraction=0.2)
+    assert np.array_equal(raster, raster2) and raster.dtype == np.float32
+    assert sorted(c.markers) == sorted(c2.markers)
+    other, raster3 = jaxdof.make_chart(dpi=40, seed=2, marker_fraction=0.2)
+    assert not np.array_equal(raster, raster3)
+    assert set(other.markers) != set(c.markers)  # the ids tell the charts apart
+    # reflectances clear of black crush and clipping
+    assert 0.049 < raster.min() and raster.max() < 0.951
+    assert raster.shape == (c.texture_px[1], c.texture_px[0])
+    assert c.width_m == pytest.approx(0.297, abs=1e-3) and c.height_m == pytest.approx(
+        0.21, abs=1e-3
+    )
+    for corners in c.markers.values():  # OpenCV's order: clockwise from the top-left
+        assert corners.shape == (4, 2)
+        assert corners[1, 0] > corners[0, 0] and corners[2, 1] > corners[1, 1]
+        assert np.all(corners >= 0) and np.all(corners[:, 0] <= c.width_m)
+
+
+def test_texture_has_energy_at_every_scale(chart):
+    """The dead-leaves texture's power spectrum falls as a power law, without holes: the power
+    in each octave of frequency is within a factor 100 of a 1/f^2 fit's."""
+    _, raster = chart
+    h, w = raster.shape
+    crop = raster[h // 4 : 3 * h // 4, w // 4 : 3 * w // 4]
+    spec = np.abs(np.fft.fft2(crop - crop.mean())) ** 2
+    fy, fx = np.meshgrid(
+        np.fft.fftfreq(crop.shape[0]), np.fft.fftfreq(crop.shape[1]), indexing="ij"
+    )
+    f = np.hypot(fx, fy)
+    bands = [(2.0**-k / 2, 2.0 ** -(k - 1) / 2) for k in range(1, 6)]
+    power = np.array([spec[(f >= a) & (f < b)].mean() for a, b in bands])
+    centre = np.array([math.sqrt(a * b) for a, b in bands])
+    slope = np.polyfit(np.log(centre), np.log(power), 1)[0]
+    assert -3.5 < slope < -1.5
+    assert np.all(power > 0)
+
+
+def test_files_round_trip(chart, tmp_path):
+    c, raster = chart
+    paths = jaxdof.write_chart(tmp_path / "c", c, raster)
+    assert [p.name for p in paths] == ["c.png", "c.pdf", "c.json"]
+    c2, raster2 = jaxdof.read_chart(tmp_path / "c.json")
+    assert np.array_equal(raster, raster2)
+    assert c2.markers.keys() == c.markers.keys()
+    assert all(np.allclose(c2.markers[i], c.markers[i]) for i in c.markers)
+    assert (c2.width_m, c2.texture_px, c2.seed, c2.dictionary) == (
+        c.width_m,
+        c.texture_px,
+        c.seed,
+        c.dictionary,
+    )
+    with pytest.raises(ValueError, match="exists; pass overwrite=True"):
+        jaxdof.write_chart(tmp_path / "c", c, raster)
+    jaxdof.write_chart(tmp_path / "c", c, raster, overwrite=True)
+    # another PNG under the sidecar's name
+    other = jaxdof.make_chart(dpi=40, seed=5, marker_fraction=0.2)
+    jaxdof.write_chart(tmp_path / "d", *other)
+    (tmp_path / "c.png").write_bytes((tmp_path / "d.png").read_bytes())
+    with pytest.raises(ValueError, match=r"c\.png: its SHA-256 differs"):
+        jaxdof.read_chart(tmp_path / "c.json")
+    (tmp_path / "x.json").write_text("{}")
+    with pytest.raises(ValueError, match="not a jaxdof chart sidecar"):
+        jaxdof.read_chart(tmp_path / "x.json")
+
+
+def test_monitor_chart(tmp_path):
+    c, raster = jaxdof.make_chart(monitor=True, screen_px=(320, 200), screen_width_m=0.3, seed=4)
+    assert c.monitor and c.texture_px == (320, 200) and raster.shape == (200, 320)
+    assert c.width_m == pytest.approx(0.3) and c.height_m == pytest.approx(0.3 * 200 / 320)
+    paths = jaxdof.write_chart(tmp_path / "m", c, raster)
+    assert [p.name for p in paths] == ["m.png", "m.json"]  # no PDF: shown from the PNG
+    with pytest.raises(ValueError, match="screen_px"):
+        jaxdof.make_chart(monitor=True)
+
+
+# ----------------------------------------------------------------------------------------------
+# Geometry
+
+
+def test_intrinsics_and_pose_from_exact_points(chart, tilted):
+    """The focal length and the pose from the exact projections of the marker corners."""
+    c, _ = chart
+    pose, camera, _ = tilted
+    g = pose.homography(camera)
+    assert focal_from_homographies([g], SHAPE) == pytest.approx(F_PX, rel=1e-9)
+    points = c.marker_points(sorted(c.markers)).reshape(-1, 2)
+    pix = np.column_stack([points, np.ones(len(points))]) @ g.T
+    pix = pix[:, :2] / pix[:, 2:]
+    from jaxdof._chart._geometry import chart_pose
+
+    found = chart_pose(points, pix, camera)
+    assert np.allclose(found.rotation, pose.rotation, atol=1e-7)
+    assert np.allclose(found.translation, pose.translation, atol=1e-7)
+    assert found.tilt == pytest.approx(pose.tilt) and 30 < pose.tilt < 45
+    # facing the camera: no focal length from the homography
+    facing = _pose(c, 0, 0, 0.45)
+    assert focal_from_homographies([facing.homography(camera)], SHAPE) is None
+
+
+def test_depth_is_the_plane(chart, tilted):
+    """Every depth on the chart is the z of the chart's point seen there; off it, NaN."""
+    c, _ = chart
+    pose, camera, (_, depth) = tilted
+    on = ~np.isnan(depth)
+    assert 0.2 < on.mean() < 0.9
+    rows, cols = np.nonzero(on)
+    g_inv = np.linalg.inv(pose.homography(camera))
+    p = np.stack([cols, rows, np.ones_like(cols)]).astype(float)
+    q = g_inv @ p
+    x, y = q[0] / q[2], q[1] / q[2]
+    assert np.all((x > 0) & (x < c.width_m) & (y > 0) & (y < c.height_m))
+    xyz = pose.rotation @ np.stack([x, y, np.zeros_like(x)]) + pose.translation[:, None]
+    assert np.allclose(depth[on], xyz[2], rtol=1e-6)
+    # a pixel off the chart: its centre maps outside
+    rows, cols = np.nonzero(~on)
+    q = g_inv @ np.stack([cols, rows, np.ones_like(cols)]).astype(float)
+    x, y = q[0] / q[2], q[1] / q[2]
+    inside = (x > 0.01) & (x < c.width_m - 0.01) & (y > 0.01) & (y < c.height_m - 0.01)
+    assert not np.any(inside)
+
+
+def test_scene_is_the_footprint(chart, tilted):
+    """The chart's image is each pixel's mean of the raster: against 16 x 16 bilinear samples
+    of the raster itself, per pixel."""
+    c, raster = chart
+    pose, camera, (sharp, depth) = tilted
+    g_inv = np.linalg.inv(pose.homography(camera))
+    u = np.arange(SHAPE[1], dtype=float)
+    v = np.arange(100, 140, dtype=float)
+    ref = _footprint(raster, 0, g_inv, u, v, 16, *c.pitch)
+    on = ~np.isnan(depth[100:140])
+    diff = np.abs(sharp[100:140] - ref)[on]
+    # the raster's texels are 0.76 photo pixels here: mip level 0, 2 x 2 samples
+    assert diff.mean() < 0.01 and diff.max() < 0.08
+
+
+def test_scene_minified(chart):
+    """A chart far away (many raster pixels per photo pixel): the mip level's footprint agrees
+    with fine sampling of the raster."""
+    c, raster = chart
+    pose = _pose(c, 10, 40, 2.0)  # texels about 0.17 photo pixels
+    camera = camera_matrix(F_PX, SHAPE)
+    sharp, depth = jaxdof.chart_scene(c, raster, pose, camera, SHAPE)
+    g_inv = np.linalg.inv(pose.homography(camera))
+    v = np.arange(110, 130, dtype=float)
+    ref = _footprint(raster, 0, g_inv, np.arange(SHAPE[1], dtype=float), v, 16, *c.pitch)
+    on = ~np.isnan(depth[110:130])
+    diff = np.abs(sharp[110:130] - ref)[on]
+    assert on.sum() > 200 and diff.mean() < 0.02
+
+
+# ----------------------------------------------------------------------------------------------
+# Detection
+
+
+@pytest.mark.parametrize("f_number, focus", [(16.0, 0.45), (2.0, 0.5), (1.4, 0.55)])
+def test_detect_blurred(chart, tilted, f_number, focus):
+    """The markers under defocus (circles up to 0.2, 2.2 and 3.7 px here; markers of
+    about 40 px, cells of 7): the homography agrees
+    with the truth's within a pixel or two at the chart's corners."""
+    c, raster = chart
+    pose, camera, scene = tilted
+    photo = _photo(scene, _lens(f_number, focus), noise=0.002)
+    view = jaxdof.detect_chart(photo, c)
+    assert view.markers >= 4 and view.error < 2.0 and view.shape == SHAPE
+    outline = np.array([[0, 0], [c.width_m, 0], [c.width_m, c.height_m], [0, c.height_m]])
+
+    def project(h):
+        p = np.column_stack([outline, np.ones(4)]) @ h.T
+        return p[:, :2] / p[:, 2:]
+
+    assert np.abs(project(view.homography) - project(pose.homography(camera))).max() < 2.5
+
+
+def test_detect_errors(chart, tilted):
+    c, raster = chart
+    pose, camera, scene = tilted
+    photo = _photo(scene, _lens(16.0, 0.45))
+    noise = np.random.default_rng(0).uniform(0.1, 0.9, SHAPE).astype(np.float32)
+    with pytest.raises(jaxdof.ChartError, match="no chart found"):
+        jaxdof.detect_chart(noise, c)
+    # another chart's sidecar: its ids differ
+    other, _ = jaxdof.make_chart(dpi=40, seed=2, marker_fraction=0.2)
+    with pytest.raises(jaxdof.ChartError, match="of this chart's .*is the sidecar"):
+        jaxdof.detect_chart(photo, other)
+    # most markers hidden
+    view = jaxdof.detect_chart(photo, c)
+    hidden = photo.copy()
+    for corners in view.corners[2:]:
+        lo, hi = corners.min(0).astype(int) - 3, corners.max(0).astype(int) + 4
+        hidden[lo[1] : hi[1], lo[0] : hi[0]] = 0.5
+    with pytest.raises(jaxdof.ChartError, match=r"2 of the chart's \d+ markers found, 4 needed"):
+        jaxdof.detect_chart(hidden, c)
+
+
+# ----------------------------------------------------------------------------------------------
+# Calibration
+
+
+def test_calibrate_refuses_a_chart_facing_the_camera(chart):
+    c, raster = chart
+    pose = _pose(c, 3, 4, 0.5)
+    camera = camera_matrix(F_PX, SHAPE)
+    photo = _photo(jaxdof.chart_scene(c, raster, pose, camera, SHAPE), _lens(16.0, 0.5))
+    s = FOCAL * 0.5 / (0.5 - FOCAL)
+    with pytest.raises(jaxdof.ChartError, match=r"faces the camera within \d\.\d degrees"):
+        jaxdof.calibrate(photo, c, raster, focal_length=FOCAL, pixel_pitch=s / F_PX)
+    # f_px from the homography: too weak to solve, or a tilt under 10 degrees
+    with pytest.raises(jaxdof.ChartError, match="too squarely|faces the camera within"):
+        jaxdof.calibrate(photo, c, raster, pixel_pitch=s / F_PX)
+
+
+def test_calibrate_refuses_photos_of_two_scenes(chart, tilted):
+    c, raster = chart
+    _, camera, scene = tilted
+    moved = jaxdof.chart_scene(c, raster, _pose(c, -15, 30, 0.45), camera, SHAPE)
+    photos = [_photo(scene, _lens(16.0, 0.45)), _photo(moved, _lens(16.0, 0.45))]
+    with pytest.raises(jaxdof.ChartError, match="photo 2 shows the chart .* from where photo 1"):
+        jaxdof.calibrate(photos, c, raster, pixel_pitch=1e-5)
+
+
+def test_calibrate_needs_a_pitch(chart, tilted):
+    c, raster = chart
+    photo = _photo(tilted[2], _lens(16.0, 0.45))
+    with pytest.raises(jaxdof.ChartError, match="pixel pitch is unknown"):
+        jaxdof.calibrate(photo, c, raster)
+
+
+@pytest.mark.slow  # 23 s on a shared 2-core machine
+def test_calibrate_end_to_end(chart, tilted):
+    """A photo of the tilted chart through f/2 focused at 0.5 m (circles up to 2.2 px, noise
+    0.002): the focus distance within 2 %, the blur scale within 5 %, the camera's focal length
+    in pixels from the markers within 3 %. The fit's choices are fixed (a photo from
+    `jaxdof.render` needs none of them) to keep the test short."""
+    c, raster = chart
+    _, _, scene = tilted
+    truth = _lens(2.0, 0.5)
+    photo = _photo(scene, truth, noise=0.002)
+    options = dict(
+        exposure=False, vignetting=False, registration=False, footprint=False, edge_weight=False
+    )
+    cal = jaxdof.calibrate(photo, c, raster, pixel_pitch=float(truth.pixel_pitch), **options)
+    assert cal.intrinsics == "homographies"
+    assert cal.focal_px == pytest.approx(F_PX, rel=0.03)
+    assert cal.fit.success
+    d_f = float(cal.lens.focus_distance)
+    assert d_f == pytest.approx(0.5, rel=0.02)
+    assert float(cal.lens.blur_scale) == pytest.approx(float(truth.blur_scale), rel=0.05)
+    out = cal.to_dict()
+    assert out["photos"][0]["markers"] == cal.views[0].markers
+    assert 30 < out["photos"][0]["tilt_deg"] < 45
