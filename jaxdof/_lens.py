@@ -169,8 +169,10 @@ def _check_depth(depth: Array, lens: ThinLens) -> None:
             )
 
 
-def _error_if_invalid(depth: Array, lens: ThinLens) -> Array:
-    """`depth`, with run-time checks of `depth > focal_length` and of the lens attached.
+def _error_if_invalid(depth: Array, lens: ThinLens, *, on_error: str = "raise") -> Array:
+    """`depth`, with run-time checks of `depth > focal_length` and of the lens attached
+    (`on_error="nan"`: NaN where they fail, without the host callback that raising needs, so
+    that the program can be kept in the persistent compilation cache).
 
     `equinox.error_if` raises when the compiled computation runs (`EquinoxRuntimeError` under
     `equinox.filter_jit`; `jax.jit` re-raises it as a JAX runtime error with the same message): under `vmap` if any batch element is invalid, under `grad` in the forward
@@ -181,8 +183,9 @@ def _error_if_invalid(depth: Array, lens: ThinLens) -> Array:
     """
     if all(_is_concrete(x) for x in jax.tree_util.tree_leaves((depth, lens))):
         return depth
-    depth = eqx.error_if(depth, ~(depth > lens.focal_length.astype(depth.dtype)), _DEPTH_MSG)
-    return eqx.error_if(depth, ~_lens_is_valid(lens), _LENS_MSG)
+    bad = ~(depth > lens.focal_length.astype(depth.dtype))
+    depth = eqx.error_if(depth, bad, _DEPTH_MSG, on_error=on_error)  # pyright: ignore
+    return eqx.error_if(depth, ~_lens_is_valid(lens), _LENS_MSG, on_error=on_error)  # pyright: ignore
 
 
 def signed_coc_radius(depth: AnyFloatLike, lens: ThinLens) -> AnyFloat:

@@ -219,7 +219,7 @@ def fit_run(files):
     argv = ["fit", "sharp.png", "depth.npy", "target.npy", *start, "--weight", "half.png"]
     # The target is the library's own default render: fit exactly that model.
     exact = ["--method", "soft", "--no-footprint", "--edge-weight", "off"]
-    res = _run([*argv, *exact, "--json", "--plot", "fit.png"], d)
+    res = _run([*argv, *exact, "--json", "--plot", "fit.png", "--steps"], d)
     figure = d / "fit.png"
     ndim = iio.imread(figure).ndim if figure.exists() else None
     figure.unlink(missing_ok=True)
@@ -278,6 +278,9 @@ def test_fit_progress_prints_each_step_once(fit_run):
         last[int(solve)] = last.get(int(solve), []) + [(float(loss), float(n), float(d_f))]
         assert float(seconds) >= 0
     assert all(s == sorted(set(s)) for s in steps.values()), steps
+    # and the compiled stages, each with its time
+    assert re.search(r"^  solving: \S+ s \(\S+ s\)$", res.stderr, re.M), res.stderr
+    assert re.search(r"^  standard errors and the adequacy test: ", res.stderr, re.M)
     obj = json.loads(res.stdout)
     _, n, d_f = min(last[max(last)])  # the lowest loss of the last solve
     assert n == pytest.approx(obj["f_number"], rel=1e-3)  # 4 digits printed

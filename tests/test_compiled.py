@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxdof
@@ -71,3 +74,36 @@ def test_cli_cache_flag(command):
     parser = build_parser()
     assert parser.parse_args([command, *needs]).cache is True
     assert parser.parse_args([command, *needs, "--no-cache"]).cache is False
+
+
+def _lowered(model, lens):
+    image = jnp.linspace(0.1, 1.0, 8 * 8 * 3, dtype=jnp.float32).reshape(8, 8, 3)
+    depth = jnp.full((8, 8), 2.0, jnp.float32).at[:, 4:].set(3.0)
+    return jax.jit(lambda ln: model(image, depth, ln, max_radius=4.0)).lower(lens).as_text()
+
+
+def test_the_fits_model_has_no_host_callback():
+    """A program with a host callback is not kept in the persistent cache: the fit's own forward
+    model (`checks=False`) has none, and gives NaN where a lens is invalid; the public default
+    (`checks=True`) raises through one."""
+    lens = jaxdof.ThinLens.from_sensor(0.05, 2.0, 2.5, sensor_width=0.0048, image_width=8)
+    assert "callback" not in _lowered(jaxdof.DefocusModel(checks=False), lens)
+    assert "callback" in _lowered(jaxdof.DefocusModel(), lens)
+    image = jnp.ones((8, 8, 3), jnp.float32)
+    depth = jnp.full((8, 8), 2.0, jnp.float32)
+    bad = eqx.tree_at(lambda ln: ln.f_number, lens, jnp.asarray(-1.0))  # past the check
+    out = jax.jit(lambda ln: jaxdof.DefocusModel(checks=False)(image, depth, ln, max_radius=4.0))(
+        bad
+    )
+    assert np.isnan(np.asarray(out)).all()
+
+
+def test_cli_stages_are_watched_without_callbacks():
+    """`watch_stages` tells each compiled stage as it starts and ends (the CLI's progress)."""
+    from jaxdof._fit.solve import run_stage, watch_stages
+
+    seen = []
+    with watch_stages(lambda name, seconds: seen.append((name, seconds))):
+        out = run_stage("fit_starts", lambda x: x + 1, jnp.ones(3))
+    assert np.asarray(out).tolist() == [2.0, 2.0, 2.0]
+    assert seen[0] == ("fit_starts", None) and seen[1][0] == "fit_starts" and seen[1][1] >= 0

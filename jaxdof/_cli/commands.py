@@ -26,6 +26,7 @@ import jaxdof
 from .. import _tuning
 from .._allocator import _glibc, retain_freed_memory
 from .._exif import ExifLens, read_exif
+from .._fit.solve import watch_stages
 from .._fit.tiles import SIDE, estimate_fit_memory, use_tiles
 from .._io import (
     _FORMATS,
@@ -474,6 +475,7 @@ class FitCall:
     kwargs: dict[str, Any]
     model: dict[str, Any]
     exif: dict[str, Any] | None = None  # the first TARGET's EXIF lens fields: `_start`
+    progress: FitProgress | None = None  # what the fit shows on stderr (`None`: --quiet)
 
     @property
     def positional(self) -> tuple:
@@ -506,11 +508,14 @@ def fit_call(args, display: Display | None = None) -> FitCall:
         width,
     )
     model = dict(method=args.method, footprint=args.footprint, downsample=args.downsample)
-    verbose: FitProgress | bool = False
+    progress, verbose = None, False
     if not args.quiet:
-        filled = jaxdof.fill_depth_holes(depth).astype(img.array.dtype)
-        decode = fit_lens_decoder(init, filled, args.free, args.shared, len(targets))
-        verbose = FitProgress(display, decode=decode, fields=args.free, max_steps=args.max_steps)
+        decode = None
+        if args.steps:  # each solver step: a host callback in the solve (not cacheable)
+            filled = jaxdof.fill_depth_holes(depth).astype(img.array.dtype)
+            decode = fit_lens_decoder(init, filled, args.free, args.shared, len(targets))
+        progress = FitProgress(display, decode=decode, fields=args.free, max_steps=args.max_steps)
+        verbose = progress if args.steps else False
     kwargs = dict(
         free=tuple(args.free),
         shared=tuple(args.shared),
@@ -525,7 +530,7 @@ def fit_call(args, display: Display | None = None) -> FitCall:
         **{k: _choice(getattr(args, k)) for k in ("exposure", "vignetting", "registration")},
         **model,
     )
-    return FitCall(img.array, depth, targets, init, kwargs, model, exif)
+    return FitCall(img.array, depth, targets, init, kwargs, model, exif, progress)
 
 
 def _choice(value: str) -> bool | None:
@@ -587,6 +592,12 @@ def check_fit_memory(args, call: FitCall) -> None:
     )
 
 
+def _watched(progress: FitProgress | None):
+    """The fit's stages shown by `progress` (`watch_stages`), which keeps its programs free of
+    host callbacks and so in the compilation cache; nothing with `--quiet`."""
+    return contextlib.nullcontext() if progress is None else watch_stages(progress.watch)
+
+
 def run_fit(args) -> int:
     with Display.for_stderr(args.quiet) as display:
         call = fit_call(args, display)
@@ -598,11 +609,11 @@ def run_fit(args) -> int:
             retain_freed_memory()
         # the first step is shown once the solve is compiled (tens of seconds on a megapixel)
         display.status("preparing and compiling the fit")
-        with library_checks(), out_of_memory("fit", call.image.shape):
+        with library_checks(), out_of_memory("fit", call.image.shape), _watched(call.progress):
             # library_checks: e.g. --shared not within --free, or the data cannot decide the lens
             result = jaxdof.fit_lens(*call.positional, **call.kwargs)
-        if isinstance(call.kwargs["verbose"], FitProgress):
-            call.kwargs["verbose"].close()
+        if call.progress is not None:
+            call.progress.close()
     summary = report.fit_summary(result)
     if call.exif is not None:
         summary["exif"] = call.exif
@@ -737,9 +748,9 @@ def run_demo(args) -> int:
     free = ("focus_distance", "f_number")
     with Display.for_stderr(args.quiet) as display:
         display.status("preparing and compiling the fit")
-        decode = fit_lens_decoder(start, depth, free, (), 1)
-        progress = FitProgress(display, decode=decode, fields=free)
-        result = jaxdof.fit_lens(image, depth, target, start, free=free, verbose=progress)
+        progress = FitProgress(display, fields=free)
+        with _watched(progress):
+            result = jaxdof.fit_lens(image, depth, target, start, free=free)
         progress.close()
     report.print_demo(truth, start, result)
     if path:

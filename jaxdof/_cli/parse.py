@@ -529,6 +529,12 @@ def _add_fit(sub) -> None:
         help="free fields shared by all targets (the others get one value per target)",
     )
     fit.add_argument("--max-steps", type=int, default=100, metavar="N", help="solver steps (100)")
+    fit.add_argument(
+        "--steps",
+        action="store_true",
+        help="show every solver step and the lens it reached (a host callback in each solve: "
+        "its programs are then compiled anew each run, not loaded from the cache)",
+    )
     _add_method_option(
         fit,
         "filter of the forward model (default: chosen by the fit: soft, or occlusion where depth "

@@ -202,6 +202,16 @@ def fit_lens_decoder(
     return decode
 
 
+# What the fit's compiled stages do (`jaxdof._fit.solve.run_stage`'s names), as `watch` shows them.
+_STAGES = {
+    "fit_starts": "solving",
+    "restate": "restating the lens at focus infinity",
+    "finish": "standard errors and the adequacy test",
+    "nuisance scores": "testing for exposure, vignetting and registration",
+    "rank at init": "checking the data's rank at the start",
+}
+
+
 class FitProgress:
     """A `fit_lens` `verbose` callable: each accepted step of each start, once, on a `Display`.
 
@@ -256,6 +266,19 @@ class FitProgress:
                 jax.debug.callback(self._record, *values, ordered=True)
             else:
                 jax.debug.callback(self._record, *values, y, ordered=True)
+
+    def watch(self, name: str, seconds: float | None) -> None:
+        """A stage of the fit (`jaxdof._fit.solve.watch_stages`): the status line as it starts
+        (or a line of its own in `lines` mode for work outside the compiled stages), a line in
+        `lines` mode as it ends, with its time."""
+        what = _STAGES.get(name)
+        if seconds is None:
+            if what is None:  # work outside the compiled stages: "choosing tiles ..."
+                self.stage(name)
+            else:
+                self.display.status(f"{what} (compiled once per shape)")
+        elif what is not None:
+            self.display.log(f"  {what}: {seconds:.1f} s ({self.display.elapsed:.1f} s)")
 
     def stage(self, text: str) -> None:
         """Work `fit_lens` does outside the solver (`"choosing tiles ..."`): the status line, or

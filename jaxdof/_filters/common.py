@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import operator
+from collections.abc import Iterator
 
 import equinox as eqx
 import jax
@@ -78,6 +81,21 @@ def check_max_radius(max_radius, radius) -> float:
     return max_radius
 
 
+# What a traced check does when it fails (`equinox.error_if`'s `on_error`), read at trace time:
+# "raise", or "nan" inside a model that asks for no host callbacks (`DefocusModel.checks`).
+_ON_ERROR: contextvars.ContextVar[str] = contextvars.ContextVar("on_error", default="raise")
+
+
+@contextlib.contextmanager
+def traced_checks(on_error: str) -> Iterator[None]:
+    """Within the block, traced radius checks do `on_error` (`"raise"` or `"nan"`) on failure."""
+    token = _ON_ERROR.set(on_error)
+    try:
+        yield
+    finally:
+        _ON_ERROR.reset(token)
+
+
 RADIUS_MSG = "radius must be >= 0 pixels everywhere (found a negative or NaN value)"
 
 
@@ -112,7 +130,8 @@ def check_image_and_radius(image, radius) -> tuple[Array, Array, bool]:
         # Under jit/grad/vmap: an error with the same message when the computation runs (if any
         # batch element is bad under vmap; in the forward pass under grad). The returned radius
         # must be used for the check to survive dead-code elimination.
-        radius = eqx.error_if(radius, ~(radius >= 0), RADIUS_MSG)  # `~(r >= 0)`: NaN fails too
+        # `~(r >= 0)`: NaN fails too
+        radius = eqx.error_if(radius, ~(radius >= 0), RADIUS_MSG, on_error=_ON_ERROR.get())  # pyright: ignore
     was_2d = image.ndim == 2
     if was_2d:
         image = image[..., None]

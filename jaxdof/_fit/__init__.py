@@ -67,6 +67,7 @@ from .solve import (
     restate as restate,
     run_stage as run_stage,
     solve_lens as solve_lens,
+    watch_stages as watch_stages,
 )
 from .strategies import (
     auto_levels as auto_levels,

@@ -62,6 +62,7 @@ from .solve import (
     nuisance_scores,
     restate,
     run_stage,
+    stage_note,
 )
 from .strategies import (
     _COARSE_TOL,
@@ -313,10 +314,12 @@ def _full_resolution(run: _Run, y0s, rows: np.ndarray, window: float):
 
 
 def _stage(verbose, text: str) -> None:
-    """Tell a `verbose` callable with a `stage` method what `fit_lens` does outside the solver."""
+    """Tell a `verbose` callable with a `stage` method, and an enclosing `watch_stages`, what
+    `fit_lens` does outside the solver."""
     stage = getattr(verbose, "stage", None)
     if callable(stage):
         stage(text)
+    stage_note(text)
 
 
 def _fine_window(run: _Run, rows: np.ndarray, depth: np.ndarray | None = None) -> float:

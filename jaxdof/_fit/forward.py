@@ -27,6 +27,7 @@ from jaxtyping import Array, Float
 from .._corrections import FOOTPRINT_REACH, footprint_prefilter
 from .._custom_types import DepthLike, ImageLike
 from .._filters import AbstractMethod, as_method, coc_filter
+from .._filters.common import traced_checks
 from .._lens import (
     ThinLens,
     _abs,
@@ -145,6 +146,12 @@ class DefocusModel(AbstractForwardModel):
       (a pixel-shift capture, say): the photo is the image's `(H, W)` divided by it. Default 1.
       Each render costs about `downsample^2` times more.
     - `normalize`: as in `jaxdof.render` (default off).
+    - `checks`: traced lenses and depths are checked when the render runs, and an invalid one
+      (`depth <= focal_length`, a non-positive f-number) raises, as in `jaxdof.render` (default);
+      `False`: the render is NaN there instead. Raising needs a host callback, and a program
+      with one is not kept in the persistent compilation cache (`jaxdof.enable_compilation_cache`):
+      `fit_lens` builds its own model with `checks=False`, since its coordinates keep every
+      lens valid (and a NaN render fails the step, not the fit).
 
     The photo is `jaxdof.render`'s to rounding, with one difference in how it is computed: the
     circles come from the lens's focus power `u = 1 / d_f`, `r = |C (u - 1/d) / (1 - f u)|`
@@ -159,6 +166,7 @@ class DefocusModel(AbstractForwardModel):
     footprint: bool = False
     downsample: int = 1
     normalize: bool = False
+    checks: bool = True
 
     def __check_init__(self):
         _check_downsample(self.downsample, ())
@@ -178,7 +186,7 @@ class DefocusModel(AbstractForwardModel):
         s = _check_downsample(self.downsample, image.shape)
         method = as_method(self.method)
         _check_depth(depth, lens)  # concrete: ValueError now; traced: checked at run time
-        depth = _error_if_invalid(depth, lens)
+        depth = _error_if_invalid(depth, lens, on_error="raise" if self.checks else "nan")
         radius = _abs(
             _signed_coc_radius_from_power(
                 depth, lens.focal_length, lens.f_number, lens.focus_power, lens.pixel_pitch
@@ -188,14 +196,15 @@ class DefocusModel(AbstractForwardModel):
         radius, window = radius * s, max_radius * s
         if self.footprint:
             image = footprint_prefilter(image, jnp.minimum(radius, window))
-        out = coc_filter(
-            image,
-            radius,
-            method=method,
-            max_radius=window,
-            normalize=self.normalize,
-            depth=depth if method.uses_depth else None,
-        )
+        with traced_checks("raise" if self.checks else "nan"):
+            out = coc_filter(
+                image,
+                radius,
+                method=method,
+                max_radius=window,
+                normalize=self.normalize,
+                depth=depth if method.uses_depth else None,
+            )
         return box_downsample(out, s)
 
     def border_band(self, max_radius: float) -> int:

@@ -24,7 +24,7 @@ def forward_model(model, *, method=None, footprint=None, downsample=None) -> Abs
     given = dict(method=method, footprint=footprint, downsample=downsample)
     given = {k: v for k, v in given.items() if v is not None}
     if model is None:
-        return DefocusModel(**given)
+        return DefocusModel(**given, checks=False)  # cacheable (`DefocusModel.checks`)
     if given:
         kw = ", ".join(f"{k}={v!r}" for k, v in given.items())
         raise ValueError(

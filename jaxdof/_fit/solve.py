@@ -536,15 +536,51 @@ def record_stages() -> Iterator[list[tuple[str, float]]]:
         _STAGE_LOG.reset(token)
 
 
+_STAGE_WATCH: contextvars.ContextVar[Callable[[str, float | None], None] | None] = (
+    contextvars.ContextVar("jaxdof_fit_stage_watch", default=None)
+)
+
+
+@contextlib.contextmanager
+def watch_stages(watch: Callable[[str, float | None], None]) -> Iterator[None]:
+    """Tell `watch` about every stage of the `fit_lens` calls inside the block: `watch(name,
+    None)` as a compiled stage starts (or `fit_lens` starts work outside the solver, named by
+    what it does: `"choosing tiles ..."`), `watch(name, seconds)` as a compiled stage ends.
+
+    What the command line shows while it fits: unlike a `verbose` callable, which runs inside
+    the compiled solve through a host callback, it leaves the programs free of callbacks, so
+    they can be kept in the persistent compilation cache (`jaxdof.enable_compilation_cache`).
+    """
+    token = _STAGE_WATCH.set(watch)
+    try:
+        yield
+    finally:
+        _STAGE_WATCH.reset(token)
+
+
+def stage_note(text: str) -> None:
+    """Tell an enclosing `watch_stages` what `fit_lens` does outside the compiled stages."""
+    watch = _STAGE_WATCH.get()
+    if watch is not None:
+        watch(text, None)
+
+
 def run_stage(name: str, stage: Callable, *args):
     """`stage(*args)`: one compiled stage of `fit_lens` (`fit_starts` or `finish`), timed into
-    the log of an enclosing `record_stages` (if any) under `name`."""
-    log = _STAGE_LOG.get()
-    if log is None:
+    the log of an enclosing `record_stages` and told to an enclosing `watch_stages` (if any)
+    under `name`."""
+    log, watch = _STAGE_LOG.get(), _STAGE_WATCH.get()
+    if log is None and watch is None:
         return stage(*args)
+    if watch is not None:
+        watch(name, None)
     t = time.perf_counter()
     out = jax.block_until_ready(stage(*args))
-    log.append((name, time.perf_counter() - t))
+    seconds = time.perf_counter() - t
+    if log is not None:
+        log.append((name, seconds))
+    if watch is not None:
+        watch(name, seconds)
     return out
 
 
