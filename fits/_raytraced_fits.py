@@ -21,6 +21,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import FITS, cached_json  # noqa: E402
+
+# The study-only candidates of the pixel-footprint correction (semi-internal).
+from _footprint_candidates import footprint_radius, pixel_prefilter  # noqa: E402
 from _raytraced_scenes import (  # noqa: E402
     CACHE,
     CONFIGS,
@@ -37,11 +40,7 @@ from _raytraced_scenes import (  # noqa: E402
 
 import jaxdof  # noqa: E402
 from jaxdof import edge_weight, fit_lens  # noqa: E402
-
-# The study-only candidates of the pixel-footprint correction (semi-internal).
 from jaxdof.internal import (  # noqa: E402
-    footprint_radius,
-    pixel_prefilter,
     release_compiled_code,
 )
 

@@ -20,6 +20,9 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from _common import RESULTS, machine_info  # noqa: E402
+
+# The study-only candidate of the pixel-footprint correction (semi-internal).
+from _footprint_candidates import footprint_radius  # noqa: E402
 from _raytraced_fits import (  # noqa: E402
     FOCUS_TOL,
     K_TOL,
@@ -64,9 +67,6 @@ from scipy.ndimage import distance_transform_edt  # noqa: E402
 
 import jaxdof  # noqa: E402
 from jaxdof import footprint_prefilter  # noqa: E402
-
-# The study-only candidate of the pixel-footprint correction (semi-internal).
-from jaxdof.internal import footprint_radius  # noqa: E402
 
 
 EDGE_JUMP = 0.03  # relative z jump between 4-neighbours that marks a depth edge (slant: < 1%)

@@ -37,11 +37,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from _common import result_path, versions_line, write_markdown  # noqa: E402
 
+# Semi-internal: the filter without the run-time input checks, and the textbook overlap formula.
+from _textbook import textbook_overlap  # noqa: E402
+
 import jaxdof  # noqa: E402
 from jaxdof import ThinLens, circle_pixel_overlap, coc_filter, render  # noqa: E402
-
-# Semi-internal: the filter without the run-time input checks, and the textbook overlap formula.
-from jaxdof.internal import soft_filter, textbook_overlap  # noqa: E402
+from jaxdof.internal import soft_filter  # noqa: E402
 
 
 SEED = 0

@@ -11,7 +11,7 @@
   kernel variance), re-exported by `jaxdof.internal`.
 
 The candidates that lost to `footprint_prefilter` (`pixel_prefilter`, `footprint_radius`) are
-study-only code in `jaxdof/internal/_study.py`.
+study-only code in `fits/_footprint_candidates.py`.
 """
 
 from __future__ import annotations
@@ -410,8 +410,8 @@ def footprint_prefilter(image: ImageLike, radius: RadiusLike) -> Image:
     Laplacian's is `-w_x^2 - w_y^2 + O(w^4)`; so `1 - c Laplacian` has variance `-2c` per axis,
     and with `c(r)` above the corrected image spread by the kernel has the lens's variance `r^2/4`
     exactly, for every radius: it sharpens by about one box (`c -> 1/24`, the study-only
-    `jaxdof.internal.pixel_prefilter`) where circles are large and blurs by `r^2/4` where they are
-    under half a pixel. Unlike `jaxdof.internal.footprint_radius` (a smaller radius instead) it
+    `pixel_prefilter` of `fits/_footprint_candidates.py`) where circles are large and blurs by `r^2/4` where they are
+    under half a pixel. Unlike that study's `footprint_radius` (a smaller radius instead) it
     keeps the kernel (the disc's shape) and makes the render depend on the lens in the dead zone,
     so a fit sees the focus plane's small circles.
 

@@ -314,7 +314,7 @@ RENDER_MEMORY = {
 CLI_MEMORY = {"process": 200 * 2**20, "per_pixel": 24.0}
 
 
-#: What `jaxdof.fit_lens` needs besides the frames it is given (`jaxdof.internal.estimate_fit_memory`,
+#: What `jaxdof.fit_lens` needs besides the frames it is given (`jaxdof._fit.tiles.estimate_fit_memory`,
 #: the CLI's `fit --memory`): `"fixed"` bytes (runtime, compiled stages), `"frame"` bytes per input
 #: pixel (the problem's float64 depth, the scout's reductions, the depth edges of a tile choice:
 #: work on the whole frame whether or not the fit runs on tiles) and `"fitted"` bytes per photo pixel

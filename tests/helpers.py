@@ -1,10 +1,24 @@
 """Shared references and scenes for the tests: slow, obviously-correct float64 numpy code."""
 
+import importlib.util
+import pathlib
+
 import jax.random as jr
 import mpmath
 import numpy as np
 
 import jaxdof
+
+
+def fits_module(name: str):
+    """A self-contained module of the studies (`fits/<name>.py`: study-only code that the tests
+    check, e.g. the candidates that lost), loaded from its file."""
+    path = pathlib.Path(__file__).parents[1] / "fits" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"fits_{name}", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 # The model the synthetic targets here are rendered with (`jaxdof.render`'s default): these tests

@@ -8,9 +8,11 @@ from jax.test_util import check_grads
 
 from jaxdof import circle_pixel_overlap
 from jaxdof._overlap import _asin
-from jaxdof.internal import textbook_overlap
 
-from .helpers import overlap_by_integration
+from .helpers import fits_module, overlap_by_integration
+
+
+textbook_overlap = fits_module("_textbook").textbook_overlap  # the study's comparison
 
 
 EDGE_CASES = [

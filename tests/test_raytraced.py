@@ -25,13 +25,16 @@ from jaxdof import (
 from jaxdof.internal import (
     edge_distance,
     footprint_coefficient,
-    footprint_radius,
     fourth_order_coefficients,
     kernel_variance,
-    pixel_prefilter,
 )
 
-from .helpers import EXACT
+from .helpers import EXACT, fits_module
+
+
+# The footprint corrections that lost to `footprint_prefilter`, kept by the study (`fits/`).
+pixel_prefilter = fits_module("_footprint_candidates").pixel_prefilter
+footprint_radius = fits_module("_footprint_candidates").footprint_radius
 
 
 DATA = Path(__file__).parent / "data"

@@ -566,7 +566,7 @@ def _available_memory() -> int | None:
 
 
 def check_fit_memory(args, call: FitCall) -> None:
-    """Stop, before it starts, a fit estimated (`jaxdof.internal.estimate_fit_memory`) to need
+    """Stop, before it starts, a fit estimated (`jaxdof._fit.tiles.estimate_fit_memory`) to need
     more than `--memory` (default: what the machine has available once the files are read):
     `InputError` with the tile budget that would fit, or a smaller image where none would."""
     photo = call.targets[0].shape

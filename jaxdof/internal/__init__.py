@@ -8,13 +8,11 @@ that only renders or fits needs nothing from here: use `jaxdof` itself.
 What is here (re-exports only):
 
 - **Filter kernels**, with the switches that the method objects choose for you: the exact soft
-  filter on a forced path (`exact_soft_filter(..., path="dense" | "spans" | "auto")`, and
-  `spans_filter`), the dense soft gather without the input checks of `jaxdof.coc_filter`
+  filter on a forced path (`exact_soft_filter(..., path="dense" | "spans" | "auto")`), the dense soft gather without the input checks of `jaxdof.coc_filter`
   (`soft_filter`), the gather loops it is built from (`gather`, `symmetric_gather`, over
   `tap_offsets(max_radius)`), and the kernels of the other methods (`supersample_filter`,
   `jitter_filter`, `layered_filter`, `tabulated_filter`, several with a `path=` switch), all on a channels-last image `(H, W, C)` and a radius map
-  already clamped to `max_radius`; the level helpers `unique_with_index`, `level_index`; and
-  `choose_method` (also public as `jaxdof.choose_method`).
+  already clamped to `max_radius`; the level helpers `unique_with_index`, `level_index`.
 - **Tuning**: `tuning`, the module of measured crossovers and cost constants
   (`jaxdof/_tuning.py`, re-measured by `fits/tune.py`; `tuning.override(NAME=value)` replaces
   constants for the duration of a block, for measurements and tests).
@@ -22,23 +20,20 @@ What is here (re-exports only):
   `max_circle(lenses, depth)` (the largest circle of lenses over a depth map),
   `start_lenses(base, depth, *, free, starts, fcap=None)` (`fit_lens`'s starts),
   `record_stages()` (time the compiled stages of `fit_lens` calls:
-  `with record_stages() as log: fit_lens(...)`), and two of the stages (`fit_starts`, `finish`).
+  `with record_stages() as log: fit_lens(...)`).
 - **Model adequacy**: `adequacy` (the between-tile test on a fit's residual and Jacobian),
-  `rounding_noise` (its noise floor), `ADEQUACY_ALPHA` (its default significance level).
+  `ADEQUACY_ALPHA` (its default significance level).
 - **Corrections**: `edge_distance` (distance to the nearest depth edge, under `jaxdof.edge_weight`),
   `kernel_variance` (the filter kernel's variance), `footprint_coefficient` (its table, which
   `jaxdof.footprint_prefilter` reads) and `fourth_order_coefficients` (the prefilter's two
-  fourth-order terms, fitted to the lens's transfer function), and the
-  study-only candidates that lost to `footprint_prefilter` against ray tracing
-  (`fits/results/raytraced.md`), kept for comparison: `pixel_prefilter` and `footprint_radius`.
-- **Memory**: `estimate_memory` (a render's), `estimate_fit_memory` (a fit's; the CLI's
-  `fit --memory`).
-  `release_compiled_code` (drops the compiled executables once the process holds many memory
-  mappings: for long loops of compiles).
-- **Files**: `read_image` and `write_image`, the CLI's readers and writers (linear light;
-  16-bit PNG and TIFF, sRGB encoding), for studies that make their scenes as files.
-- **Overlap**: `textbook_overlap`, the inclusion-exclusion form of the circle-pixel overlap that
-  `jaxdof.circle_pixel_overlap` avoids (its float32 cancellation, measured by `fits/stability.py`).
+  fourth-order terms, fitted to the lens's transfer function).
+- **Memory and compiled code**: `estimate_memory` (a render's); `release_compiled_code` (drops
+  the compiled executables once the process holds many memory mappings: for long loops of
+  compiles).
+- **Files**: `write_image`, the CLI's writer (linear light in; 16-bit PNG and TIFF, sRGB
+  encoding), for studies that make their scenes as files.
+
+Study-only code (the footprint candidates that lost, the textbook overlap) lives in `fits/`.
 """
 
 # A renamed re-export is one ruff cannot tell from an unused import: hence the noqa below.
@@ -50,7 +45,6 @@ from .._corrections import (
     fourth_order_coefficients as fourth_order_coefficients,
     kernel_variance as kernel_variance,
 )
-from .._filters.auto import choose_method as choose_method
 from .._filters.common import (
     level_index as level_index,
     tap_offsets as tap_offsets,
@@ -63,16 +57,11 @@ from .._filters.soft import (
     soft_filter as soft_filter,
     symmetric_gather as symmetric_gather,
 )
-from .._filters.spans import (
-    exact_soft_filter as exact_soft_filter,
-    spans_filter as spans_filter,
-)
+from .._filters.spans import exact_soft_filter as exact_soft_filter
 from .._filters.supersample import supersample_filter as supersample_filter
 from .._filters.tabulated import tabulated_filter as tabulated_filter
 from .._fit import (
     auto_levels as auto_levels,
-    finish as finish,
-    fit_starts as fit_starts,
     max_circle as max_circle,
     record_stages as record_stages,
     start_lenses as start_lenses,
@@ -80,10 +69,6 @@ from .._fit import (
 from .._fit.adequacy import (  # noqa: F401
     ALPHA as ADEQUACY_ALPHA,
     adequacy as adequacy,
-    rounding_noise as rounding_noise,
 )
-from .._fit.tiles import estimate_fit_memory as estimate_fit_memory
-from .._io import read_image as read_image, write_image as write_image
+from .._io import write_image as write_image
 from .._render import estimate_memory as estimate_memory
-from ._study import footprint_radius as footprint_radius, pixel_prefilter as pixel_prefilter
-from ._textbook import textbook_overlap as textbook_overlap

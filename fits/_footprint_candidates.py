@@ -9,7 +9,7 @@ live here, kept for comparison and for the study's cached fits:
 - `pixel_prefilter`: the image sharpened by the large-circle constant everywhere.
 - `footprint_radius`: the radius changed instead of the image.
 
-Measured in `fits/results/raytraced.md`. Semi-internal: no stability promise.
+Measured in `fits/results/raytraced.md`; tested in `tests/test_raytraced.py`.
 """
 
 from __future__ import annotations
@@ -19,13 +19,10 @@ import math
 
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike
-
-from .._corrections import _image_and_laplacian
-from .._custom_types import Image, ImageLike
+from jaxtyping import Array, ArrayLike
 
 
-def pixel_prefilter(image: ImageLike) -> Image:
+def pixel_prefilter(image: ArrayLike) -> Array:
     r"""Sharpen an all-in-focus image by one pixel footprint (a box of width 1 px), approximately.
 
     **Arguments:** `image`, `(H, W)` or `(H, W, C)`, linear light.
@@ -52,7 +49,12 @@ def pixel_prefilter(image: ImageLike) -> Image:
     (this one's `1/24` for large circles, a slight blur under half a pixel), which removes that
     bias. Kept for comparison.
     """
-    x, lap = _image_and_laplacian(image)
+    x = jnp.asarray(image)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        raise ValueError(f"image must be a floating-point array, got dtype {x.dtype}")
+    pad = [(1, 1), (1, 1)] + [(0, 0)] * (x.ndim - 2)
+    p = jnp.pad(x, pad, mode="edge")
+    lap = p[:-2, 1:-1] + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:] - 4 * x
     return x - lap / 24
 
 

@@ -1,8 +1,7 @@
 """The textbook circle-pixel overlap that `jaxdof.circle_pixel_overlap` avoids (study only).
 
 Kept as the comparison of `fits/stability.py` (its float32 error at every radius) and of
-`tests/test_overlap.py` (the digits it loses at a large radius). Semi-internal: no stability
-promise.
+`tests/test_overlap.py` (the digits it loses at a large radius).
 """
 
 from __future__ import annotations
