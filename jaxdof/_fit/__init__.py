@@ -33,24 +33,32 @@ standard error in metres and a finite one in diopters (`FitResult.focus_power_st
 it, which the image lacks; `fit_lens` leaves that band out of the residual by default (a zero
 weight, `border`).
 
-**The parts**, lower to higher:
+**The parts**, lower to higher (the data path: coordinates -> render -> residual -> solve ->
+statistics -> the orchestration's choices):
 
 - `layout.py`: the parameter layout (`_Spec`, `_Layout`) and the unconstrained coordinates;
 - `forward.py`: the forward models (`AbstractForwardModel`, `DefocusModel`) and `max_circle`;
+- `photo.py`: what the camera adds to the render (exposure, vignetting, registration, luma);
 - `residual.py`: the residual function (`_Model`) with its Jacobian-materialising JVP rule;
+- `linalg.py`: the small dense decompositions of the statistics (thin SVD, pseudo-inverse);
+- `lm.py`: the default solver, Levenberg-Marquardt that stops at the noise level;
+- `race.py`: the multi-start solve, every start in lockstep, a slow start stopped;
+- `adequacy.py`: the model-adequacy test between tiles of the residual;
 - `result.py`: `FitResult`, the status enumeration `RESULTS`, and the wording;
 - `prepare.py`: input checks and conversion;
 - `solve.py`: the pure solve, statistics, the compiled stages and `solve_lens`;
 - `strategies.py`: starts, windows, the border band, the coarse-to-fine pyramid;
+- `tiles.py`: the informative tiles of a large photo, and a fit's memory estimate;
 - `treatment.py`: what the scene needs modelled (occlusion, edge weight, footprint): `Treatment`;
-- `verbose.py`: progress printing through optimistix's `verbose`;
+- `select.py`: the photo's say in the treatment and in the camera's nuisances;
+- `verbose.py`: the solver's `verbose` callable, with the lenses each step reached;
 - `fit.py`: `fit_lens`, which orchestrates them.
 
 **For studies** (`jaxdof.internal` re-exports these): `auto_levels` (the automatic pyramid
 rule), `max_circle` (the largest circle of lenses over a depth map), `start_lenses` (fit_lens's
 starts), `window_for` (its window policy), `record_stages` (time the compiled stages of
-`fit_lens` calls without patching), `run_stage`, `fit_starts`, `restate` and `finish` (the
-stages).
+`fit_lens` calls without patching), `watch_stages` (tell a caller each stage as it runs),
+`run_stage`, `fit_starts`, `restate` and `finish` (the stages).
 """
 
 from .fit import fit_lens as fit_lens
