@@ -54,11 +54,11 @@ statistics -> the orchestration's choices):
 - `verbose.py`: the solver's `verbose` callable, with the lenses each step reached;
 - `fit.py`: `fit_lens`, which orchestrates them.
 
-**For studies** (`jaxdof.internal` re-exports these): `auto_levels` (the automatic pyramid
-rule), `max_circle` (the largest circle of lenses over a depth map), `start_lenses` (fit_lens's
-starts), `window_for` (its window policy), `record_stages` (time the compiled stages of
-`fit_lens` calls without patching), `watch_stages` (tell a caller each stage as it runs),
-`run_stage`, `fit_starts`, `restate` and `finish` (the stages).
+**For studies and the CLI**: `auto_levels` (the automatic pyramid rule), `max_circle` (the
+largest circle of lenses over a depth map), `start_lenses` (fit_lens's starts), `record_stages`
+(time the compiled stages of `fit_lens` calls without patching; these four are re-exported by
+`jaxdof.internal`), `window_for` (the window policy), `watch_stages` (tell a caller each stage
+as it runs: the CLI's progress), `run_stage`, `fit_starts`, `restate` and `finish` (the stages).
 """
 
 from .fit import fit_lens as fit_lens
