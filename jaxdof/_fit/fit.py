@@ -963,6 +963,74 @@ def _fit_treated(
     """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection; the score
     tests of the nuisances `test` (`photo.NUISANCES`) where it does not fit them."""
     given = dict(locals())  # the call, to refit on tiles chosen for a larger window
+    run, treatment, rows0, window, budget, levels = _set_up(**given)
+    p, full_pixels = run.problem, int(run.problem.photo[0] * run.problem.photo[1])
+    chosen = None
+    try:
+        run, treatment, y0s, rows, chosen = _coarse_solve(
+            run,
+            treatment,
+            rows0,
+            window,
+            budget,
+            levels,
+            own_choice=model is None and method is None,
+        )
+        p = run.problem
+        model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
+            run, y0s, rows, window
+        )
+        result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single, used)
+        info.update(jax.device_get(stats))
+        # The score tests of the nuisances to decide, where the fit leaves something to explain
+        # (`select.with_nuisances`); on tiles only those that do not depend on the whole frame.
+        names = tuple(k for k in test if k not in p.spec.nuisances and not (chosen and k in FRAMED))
+        if names and float(info["sigma"]) >= nuisance_floor(targets):
+            scores = run_stage(
+                "nuisance scores", nuisance_scores, model_r, solution, args, p.spec, names
+            )
+            info["nuisance_scores"] = jax.device_get(scores)
+    except _SOLVER_ERRORS as err:
+        failed = _failed(run, err, window)
+        return dataclasses.replace(
+            failed, treatment=dataclasses.replace(treatment, border=failed.border)
+        )
+    result = dataclasses.replace(
+        result,
+        border=used,
+        treatment=dataclasses.replace(treatment, border=used),
+        nuisances=_nuisance_entries(info, p.spec, p.photo, run.extra_band),
+    )
+    if "registration" in p.spec.nuisances:
+        needed = _registration_reach(p.photo, info["nuisance_values"])
+        if needed > run.extra_band:  # the fitted registration reads beyond the band: again
+            return _fit_treated(**{**given, "registration_reach": needed})
+    if chosen is not None:
+        if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
+            return _fit_treated(**{**given, "max_radius": window, "tiles": budget})
+        notes.append(_tiles_note(chosen, full_pixels))
+        result = dataclasses.replace(result, tiles=chosen.boxes)
+    # A rank-deficient solution that the photos contradict (the adequacy test fails there) while
+    # they determine the free set at the init: a fit that ended in a flat region of the model,
+    # not a free set the data cannot determine (that one is refused: a focus bracket all at
+    # infinity is rank deficient only at its solution, which explains the photos).
+    if (
+        code_of(info["status"]) == _DEGENERATE
+        and not allow_degenerate
+        and not bool(result.adequacy["adequate"])
+    ):
+        info["determined_at_init"] = _determined_at_init(model_r, rows0, args, p)
+    return _verdict(run, result, info, r_final, window, notes, allow_degenerate)
+
+
+def _set_up(
+    image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
+    nuisances, luma, starts, verbose, model, method, footprint, pyramid, downsample, border,
+    tiles, edge_weight, registration_reach, hole_reach, **_,
+):  # fmt: skip
+    """`_fit_treated`'s checked problem and plan: `(run, treatment, rows0, window, budget,
+    levels)`, the starts `rows0`, the window, the tiles' pixel budget (`None`: the whole frame)
+    and the pyramid's levels (`None`: automatic)."""
     forward = forward_model(model, method=method, footprint=footprint, downsample=downsample)
     free, shared = _check_names(free, shared)
     check_edge_weight(edge_weight)
@@ -976,7 +1044,6 @@ def _fit_treated(
     band = check_border(border)
     p = prepare_problem(image, depth, targets, init, weight, forward, free, shared, nuisances, luma)
     p, forward, treatment = treat_scene(p, forward, model, method, footprint, edge_weight)
-    p_full_pixels = int(p.photo[0] * p.photo[1])
     levels = _check_pyramid(pyramid, p.photo)
     solver, coarse_solver = _solvers(solver, p.dtype, verbose)
     rows0 = start_lenses(p.b, p.d, free=free, starts=n_starts, fcap=p.fcap)
@@ -1015,72 +1082,35 @@ def _fit_treated(
     if "registration" in p.spec.nuisances:
         reach = _registration_reach(p.photo) if registration_reach is None else registration_reach
         run = dataclasses.replace(run, extra_band=reach)
-    chosen = None
-    try:
-        if budget is None:
-            if levels is None:
-                levels = auto_levels(p.photo, forward.max_circle(rows0[:1], p.d))
-            run = dataclasses.replace(run, levels=levels)
-            y0s, rows = _coarse_to_fine(run, rows0, window)
-        else:
-            occluding = run.forward
-            chosen_here = treatment.occlusion and model is None and method is None
-            if chosen_here:
-                # The scout (starts, information) runs on the soft render with the edge weight;
-                # the tiles keep clear of edges where they can, and only tiles holding one need
-                # the occlusion render (2-3x the soft filter's cost per step).
-                soft = dataclasses.replace(occluding, method="soft")
-                run = dataclasses.replace(run, forward=soft)
-            run, y0s, rows, chosen = _on_tiles(run, rows0, window, budget, levels)
-            if chosen_here and not edge_free(p, chosen):
-                run = dataclasses.replace(run, forward=occluding)
-            elif chosen_here:
-                treatment = dataclasses.replace(treatment, occlusion=False, method="soft")
-            p = run.problem
-        model_r, solution, info, r_final, window, notes, args, used = _full_resolution(
-            run, y0s, rows, window
-        )
-        result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single, used)
-        info.update(jax.device_get(stats))
-        # The score tests of the nuisances to decide, where the fit leaves something to explain
-        # (`select.with_nuisances`); on tiles only those that do not depend on the whole frame.
-        names = tuple(k for k in test if k not in p.spec.nuisances and not (chosen and k in FRAMED))
-        if names and float(info["sigma"]) >= nuisance_floor(targets):
-            scores = run_stage(
-                "nuisance scores", nuisance_scores, model_r, solution, args, p.spec, names
-            )
-            info["nuisance_scores"] = jax.device_get(scores)
-    except _SOLVER_ERRORS as err:
-        failed = _failed(run, err, window)
-        return dataclasses.replace(
-            failed, treatment=dataclasses.replace(treatment, border=failed.border)
-        )
-    result = dataclasses.replace(
-        result,
-        border=used,
-        treatment=dataclasses.replace(treatment, border=used),
-        nuisances=_nuisance_entries(info, p.spec, p.photo, run.extra_band),
-    )
-    if "registration" in p.spec.nuisances:
-        needed = _registration_reach(p.photo, info["nuisance_values"])
-        if needed > run.extra_band:  # the fitted registration reads beyond the band: again
-            return _fit_treated(**{**given, "registration_reach": needed})
-    if chosen is not None:
-        if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
-            return _fit_treated(**{**given, "max_radius": window, "tiles": budget})
-        notes.append(_tiles_note(chosen, p_full_pixels))
-        result = dataclasses.replace(result, tiles=chosen.boxes)
-    # A rank-deficient solution that the photos contradict (the adequacy test fails there) while
-    # they determine the free set at the init: a fit that ended in a flat region of the model,
-    # not a free set the data cannot determine (that one is refused: a focus bracket all at
-    # infinity is rank deficient only at its solution, which explains the photos).
-    if (
-        code_of(info["status"]) == _DEGENERATE
-        and not allow_degenerate
-        and not bool(result.adequacy["adequate"])
-    ):
-        info["determined_at_init"] = _determined_at_init(model_r, rows0, args, p)
-    return _verdict(run, result, info, r_final, window, notes, allow_degenerate)
+    if budget is None:  # coarse-to-fine on the whole frame
+        if levels is None:
+            levels = auto_levels(p.photo, forward.max_circle(rows0[:1], p.d))
+        run = dataclasses.replace(run, levels=levels)
+    return run, treatment, rows0, window, budget, levels
+
+
+def _coarse_solve(run: _Run, treatment, rows0, window: float, budget, levels, own_choice: bool):
+    """The starts' solves before the full-resolution one: coarse-to-fine on the whole frame, or
+    the scout and the choice of tiles (`budget` pixels). Returns `(run, treatment, y0s, rows,
+    chosen)`, `chosen` the tiles (`None` on the whole frame); on tiles the occlusion render the
+    fit chose itself (`own_choice`) is kept only where a tile holds a depth edge."""
+    p = run.problem
+    if budget is None:  # `run.levels` set (`_set_up`)
+        y0s, rows = _coarse_to_fine(run, rows0, window)
+        return run, treatment, y0s, rows, None
+    occluding = run.forward
+    chosen_here = treatment.occlusion and own_choice
+    if chosen_here:
+        # The scout (starts, information) runs on the soft render with the edge weight; the
+        # tiles keep clear of edges where they can, and only tiles holding one need the
+        # occlusion render (2-3x the soft filter's cost per step).
+        run = dataclasses.replace(run, forward=dataclasses.replace(occluding, method="soft"))
+    run, y0s, rows, chosen = _on_tiles(run, rows0, window, budget, levels)
+    if chosen_here and not edge_free(p, chosen):
+        run = dataclasses.replace(run, forward=occluding)
+    elif chosen_here:
+        treatment = dataclasses.replace(treatment, occlusion=False, method="soft")
+    return run, treatment, y0s, rows, chosen
 
 
 # The registration a fit allows for before it has one (photo pixels): a shift of up to 2 px and
