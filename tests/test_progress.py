@@ -1,6 +1,6 @@
 """What the CLI shows while it works (`jaxdof._cli.progress`): the display's modes, a fit's solver
-steps once each with the start, solve and lens they belong to, and the lens decoder against the
-fit's own parameter layout. The commands' output itself: tests/test_cli.py."""
+steps once each with the start, solve and lens they belong to, and the lenses `fit_lens` hands its
+`verbose` callable. The commands' output itself: tests/test_cli.py."""
 
 import io
 import re
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import jaxdof
-from jaxdof._cli.progress import Display, FitProgress, fit_lens_decoder, lens_text
+from jaxdof._cli.progress import Display, FitProgress, lens_text
 
 
 class _Terminal(io.StringIO):
@@ -116,22 +116,30 @@ _LINE = re.compile(
 _Y0S = [[-1.2, 1.0], [0.5, 0.5], [3.0, -2.0]]
 
 
-def _rows_of(y):
-    """A stand-in decoder: the Rosenbrock point as a lens (f = 50 mm, N = 2 + y0, d_f = 3 + y1)."""
-    y = np.asarray(y, np.float64)
-    return np.array([[0.05, 2.0 + y[0], 3.0 + y[1], 1e-5]])
+def _with_lens(progress):
+    """`progress` as `fit_lens` calls it: with `lenses`, here the Rosenbrock point as a lens
+    (f = 50 mm, N = 2 + y0, d_f = 3 + y1), one photo."""
+    import jax.numpy as jnp
+
+    def verbose(**kwargs):
+        y = kwargs["y_last_accepted_step"][1]
+        one = jnp.ones((1,), y.dtype)
+        lens = jaxdof.ThinLens(0.05 * one, 2.0 + y[0] * one, 3.0 + y[1] * one, 1e-5 * one)
+        progress(**kwargs, lenses=("Lenses", lens))
+
+    return verbose
 
 
 def test_each_step_once_with_its_start(capsys):
     """`FitProgress` (plain lines) on a vmapped solve whose starts finish after different numbers
     of steps: every line is about the start it names (its loss says so: starts from 1), once per
     accepted step, steps rising, and a start done early reports its final step; the same callable
-    in a second solve says `solve 2`. With a decoder, the lens the step reached (the Rosenbrock
-    minimum (1, 1) is N 3, d_f 4)."""
-    progress = FitProgress(decode=_rows_of)
-    steps = _toy_solve(_Y0S, progress)
+    in a second solve says `solve 2`. With the lenses `fit_lens` passes, the lens the step reached
+    (the Rosenbrock minimum (1, 1) is N 3, d_f 4)."""
+    progress = FitProgress()
+    steps = _toy_solve(_Y0S, _with_lens(progress))
     assert len(set(steps.tolist())) == len(_Y0S)  # the case that repeated lines: starts done early
-    _toy_solve(_Y0S, progress)  # the next solve
+    _toy_solve(_Y0S, _with_lens(progress))  # the next solve
     lines = capsys.readouterr().err.splitlines()
     assert len(lines) == len(set(lines)), "a step line is repeated"
     seen, last = {}, {}
@@ -155,9 +163,9 @@ def test_live_display_of_a_fit():
     """In `live` mode the steps go to the status line (the solve's steps against `max_steps`, a
     bound) and each solve leaves one summary line: its starts, steps, best loss and lens."""
     display = _Recorder()
-    progress = FitProgress(display, decode=_rows_of, max_steps=100)
-    steps = _toy_solve(_Y0S, progress)
-    _toy_solve(_Y0S, progress)
+    progress = FitProgress(display, max_steps=100)
+    steps = _toy_solve(_Y0S, _with_lens(progress))
+    _toy_solve(_Y0S, _with_lens(progress))
     progress.close()
     assert display.statuses, "no step shown"
     for text, completed, total, bound in display.statuses:
@@ -176,43 +184,65 @@ def test_live_display_of_a_fit():
         assert match.group(2) == "f 50 mm  N 3  d_f 4 m"
 
 
-def test_a_failing_decoder_only_drops_the_lens(capsys):
-    """The display must never end a fit: a decoder that raises leaves the lens out."""
-
-    def broken(y):
-        raise RuntimeError("no lens")
-
-    _toy_solve(_Y0S[:1], FitProgress(decode=broken))
+def test_without_lenses_the_steps_only(capsys):
+    """A solver's `verbose` without `lenses` (another caller than `fit_lens`): the steps alone."""
+    _toy_solve(_Y0S[:1], FitProgress())
     lines = capsys.readouterr().err.splitlines()
     assert lines and all(_LINE.match(line) and " mm" not in line for line in lines)
 
 
 @pytest.mark.parametrize(
     "free, shared",
-    [
-        (("focus_distance", "f_number"), ()),
-        (("focus_distance", "f_number", "focal_length"), ("focal_length", "f_number")),
-        (("f_number",), ()),
-    ],
+    [(("focus_distance", "f_number", "focal_length"), ("focal_length", "f_number"))],
 )
-def test_decoder_is_the_fits_own_map(free, shared):
-    """`fit_lens_decoder` reads a parameter vector as `fit_lens` does: the same lens rows as the
-    fit's own layout (`prepare_problem`, which `fit_lens` builds its solves from) for random
-    vectors, one photo or a bracket of three."""
-    import jax.numpy as jnp
-
-    from jaxdof._fit.layout import natural
-    from jaxdof._fit.prepare import forward_model, prepare_problem
+def test_verbose_receives_the_fits_lenses(free, shared):
+    """`fit_lens`'s `verbose` callable receives the lens of every photo at each step, decoded by
+    the fit's own map: the last accepted step's lenses are the fit's answer."""
+    import jax
 
     rng = np.random.default_rng(1)
-    image = rng.uniform(size=(12, 10, 3)).astype(np.float32)
-    depth = rng.uniform(1.0, 5.0, size=(12, 10)).astype(np.float32)
-    init = jaxdof.ThinLens.from_sensor(0.05, 2.8, 3.0, sensor_width=0.036, image_width=10)
+    image = rng.uniform(size=(16, 20, 3)).astype(np.float32)
+    depth = np.linspace(1.0, 5.0, 20, dtype=np.float32)[None, :].repeat(16, 0)
     t = 3 if "focal_length" in free else 1
-    targets = np.stack([image] * t)
-    p = prepare_problem(image, depth, targets, init, None, forward_model(None), free, shared)
-    decode = fit_lens_decoder(init, depth, free, shared, t)
-    for _ in range(5):
-        y = rng.normal(size=3 * t).astype(np.float32)
-        expect = np.asarray(natural(jnp.asarray(y), p.layout))
-        np.testing.assert_allclose(decode(y), expect, rtol=1e-6)
+    truth = [
+        jaxdof.ThinLens.from_sensor(0.05, 2.8, d, sensor_width=0.0048, image_width=20)
+        for d in (2.0, 3.0, 4.0)[:t]
+    ]
+    photos = np.stack([np.asarray(jaxdof.render(image, depth, lens)) for lens in truth])
+    start = jaxdof.ThinLens.from_sensor(0.05, 4.0, 2.5, sensor_width=0.0048, image_width=20)
+    seen = []
+
+    def verbose(**kwargs):
+        lens = kwargs["lenses"][1]
+        jax.debug.callback(
+            lambda *a: seen.append([np.asarray(x) for x in a]),
+            lens.f_number,
+            lens.focus_distance,
+            ordered=True,
+        )
+
+    fit = jaxdof.fit_lens(
+        image,
+        depth,
+        photos[0] if t == 1 else photos,
+        start,
+        free=free,
+        shared=shared,
+        verbose=verbose,
+        starts=1,
+        # the photo's own model, nothing to decide: the last solve is the answer's
+        method="soft",
+        footprint=False,
+        edge_weight=False,
+        exposure=False,
+        vignetting=False,
+        registration=False,
+        luma=False,
+    )
+    jax.effects_barrier()
+    n, d_f = seen[-1]
+    assert np.shape(n)[-1] == t
+    np.testing.assert_allclose(np.reshape(n, -1), np.asarray(fit.lenses.f_number), rtol=1e-4)
+    np.testing.assert_allclose(
+        np.reshape(d_f, -1), np.asarray(fit.lenses.focus_distance), rtol=1e-4
+    )

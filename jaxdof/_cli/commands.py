@@ -44,7 +44,7 @@ from .._render import _check_downsample, _needs_whole_frame, band_starts, estima
 from .._upsample import depth_ratio
 from . import plot, report
 from .demo import demo_scene
-from .progress import Display, FitProgress, fit_lens_decoder
+from .progress import Display, FitProgress
 from .report import note
 
 
@@ -510,11 +510,8 @@ def fit_call(args, display: Display | None = None) -> FitCall:
     model = dict(method=args.method, footprint=args.footprint, downsample=args.downsample)
     progress, verbose = None, False
     if not args.quiet:
-        decode = None
-        if args.steps:  # each solver step: a host callback in the solve (not cacheable)
-            filled = jaxdof.fill_depth_holes(depth).astype(img.array.dtype)
-            decode = fit_lens_decoder(init, filled, args.free, args.shared, len(targets))
-        progress = FitProgress(display, decode=decode, fields=args.free, max_steps=args.max_steps)
+        progress = FitProgress(display, fields=args.free, max_steps=args.max_steps)
+        # each solver step: a host callback in the solve, whose programs are then not cached
         verbose = progress if args.steps else False
     kwargs = dict(
         free=tuple(args.free),

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -177,31 +176,6 @@ def lens_text(rows: np.ndarray, fields=_FIELDS) -> str:
     return "  ".join(parts[name] for name in _FIELDS if name in fields)
 
 
-def fit_lens_decoder(
-    init, depth: np.ndarray, free, shared, n_targets: int
-) -> Callable[[np.ndarray], np.ndarray]:
-    """The lens rows `(T, 4)` of a parameter vector `y` of `jaxdof.fit_lens` (what its `verbose`
-    callable receives: `y` in the solver's coordinates), for a fit of `n_targets` photos from
-    `init` over `depth` with `free` and `shared` and no exposure (the CLI's fits).
-
-    The fit's own map (`jaxdof._fit.layout`): the layout is built from the same `init` rows and
-    depth as `fit_lens` builds it, and keeps the full-resolution bound on `f` at every pyramid
-    level, so one decoder serves every solve. (`fit_lens` does not hand the lens to a `verbose`
-    callable; `tests/test_cli.py` checks that the last step shown is the fit's answer.)
-    """
-    from .._fit.layout import _Spec, natural
-    from .._fit.prepare import _base
-
-    d = np.asarray(depth)
-    base = np.asarray(_base(np, init, n_targets), d.dtype)
-    layout = _Spec(tuple(free), tuple(shared), n_targets).layout(base, d)
-
-    def decode(y: np.ndarray) -> np.ndarray:
-        return np.asarray(natural(jnp.asarray(y, base.dtype), layout))
-
-    return decode
-
-
 # What the fit's compiled stages do (`jaxdof._fit.solve.run_stage`'s names), as `watch` shows them.
 _STAGES = {
     "fit_starts": "solving",
@@ -229,8 +203,8 @@ class FitProgress:
 
     `fit_lens` runs one solve per pyramid level (coarsest first) and per refit of a grown window;
     they are `solve k` (1, 2, ... in order), and the starts within one `start i/n` (from 1).
-    With `decode` (`fit_lens_decoder`), each step also shows the lens it reached (its `fields`:
-    the free ones). In `lines` mode every accepted step is a line; `live` shows the solve's step
+    Each step also shows the lens it reached (`fit_lens` passes it as `lenses`; its `fields`: the
+    free ones). In `lines` mode every accepted step is a line; `live` shows the solve's step
     against `max_steps` and its best start so far (the starts run at once) on the status line,
     and keeps one summary line per solve.
     """
@@ -239,12 +213,10 @@ class FitProgress:
         self,
         display: Display | None = None,
         *,
-        decode: Callable[[np.ndarray], np.ndarray] | None = None,
         fields=_FIELDS,
         max_steps: int | None = None,
     ):
         self.display = Display("lines") if display is None else display
-        self.decode = decode
         self.fields = tuple(fields)
         self.max_steps = max_steps
         self._solve = 0
@@ -261,11 +233,12 @@ class FitProgress:
         names = ("num_steps", "accepted_steps", "loss_last_accepted_step")
         if all(name in kwargs for name in names):
             values = [kwargs[name][1] for name in names]
-            y = kwargs.get("y_last_accepted_step", (None, None))[1]
-            if self.decode is None or y is None:
+            lens = kwargs.get("lenses", (None, None))[1]
+            if lens is None:
                 jax.debug.callback(self._record, *values, ordered=True)
             else:
-                jax.debug.callback(self._record, *values, y, ordered=True)
+                rows = jnp.stack([lens.focal_length, lens.f_number, lens.focus_distance], -1)
+                jax.debug.callback(self._record, *values, rows, ordered=True)
 
     def watch(self, name: str, seconds: float | None) -> None:
         """A stage of the fit (`jaxdof._fit.solve.watch_stages`): the status line as it starts
@@ -290,10 +263,10 @@ class FitProgress:
         """The last solve's summary (call when the fit has returned)."""
         self._summarise()
 
-    def _record(self, step, accepted, loss, y=None) -> None:
+    def _record(self, step, accepted, loss, rows=None) -> None:
         steps, accepted, loss = (np.reshape(np.asarray(x), -1) for x in (step, accepted, loss))
         batched = steps.size > 1  # one call for all starts (a JAX that does not unroll vmap)
-        ys = None if y is None else np.reshape(np.asarray(y), (steps.size, -1))
+        ys = None if rows is None else np.reshape(np.asarray(rows), (steps.size, -1, 3))
         for i in range(steps.size):
             start = i if batched else None
             yi = None if ys is None else ys[i]
@@ -335,13 +308,11 @@ class FitProgress:
             )
             self.display.status(text, completed=self._steps, total=self.max_steps, bound=True)
 
-    def _lens(self, y) -> str:
-        if self.decode is None or y is None:
+    def _lens(self, rows) -> str:
+        """`(T, 3)` rows `(f, N, d_f)` as `lens_text` writes them ("" without)."""
+        if rows is None:
             return ""
-        try:
-            return lens_text(self.decode(y), self.fields)
-        except Exception:  # a display must not end a fit; the CLI test checks the decoding
-            return ""
+        return lens_text(np.concatenate([rows, np.zeros_like(rows[:, :1])], 1), self.fields)
 
     def _summarise(self) -> None:
         """`live`: one line that stays for the solve just done (the steps were on the status)."""

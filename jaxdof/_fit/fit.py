@@ -838,7 +838,8 @@ def fit_lens(
       resolution); `None` decides from the photo's colour detail.
     - `starts`: the number of starts (default 4 with a free focus, else 3): `init`, then focus
       powers spread over the scene's depths, solved in lockstep (`race.py`).
-    - `verbose`: `True` prints each step; a callable receives optimistix's `(name, value)` pairs.
+    - `verbose`: `True` prints each step; a callable receives optimistix's `(name, value)` pairs
+      and `lenses=("Lenses", ThinLens)`, every photo's lens at the last accepted step (traced).
     - `model`: a `jaxdof.AbstractForwardModel` (default `jaxdof.DefocusModel`); `method`,
       `footprint`, `downsample`: the default model's options (not with `model`).
     - `pyramid`: coarse-to-fine levels (`None`: automatic; `1`: full resolution only). The result
