@@ -898,26 +898,31 @@ def fit_lens(
     # without it rejects and it explains more than the model's error (`select.with_nuisances`),
     # the caller's choices as given ...
     decided = with_nuisances(result, call, _fit_treated, nuisance_floor(targets), asked)
-    on = canonical(k for k, v in (decided.nuisances or {}).items() if v.get("fitted"))
-    if on != call["nuisances"]:
-        # ... and where the photo asked for one, the treatment asked again with it: a photo
-        # darker than the model made the footprint correction look worse (the ray-traced fgbg
-        # at exposure x 0.85 dropped it, focus 5 % off).
-        call = {**call, "nuisances": on, "test": ()}  # decided: no score tests again
-        start = {"init": decided.lenses, "starts": 1, "pyramid": None}
-        same = same_pixels(decided)
-        try:
-            again = _fit_treated(**{**call, **start, **same})
-            again = _photo_says(again, {**call, **same}, rounding)
-        except ValueError:
-            again = None
-        result = decided if again is None else decisions(again, decided, asked)
-    else:
-        result = decided
+    # ... and where the photo asked for one, the treatment asked again with it.
+    result = _asked_again(decided, call, asked, rounding)
     if coarse and result.treatment is not None:
         treatment = dataclasses.replace(result.treatment, depth_upsampled=tuple(coarse))
         result = dataclasses.replace(result, treatment=treatment)
     return dataclasses.replace(result, nuisances={**(result.nuisances or {}), "luma": luma_entry})
+
+
+def _asked_again(decided: FitResult, call: dict, asked: dict, rounding: float) -> FitResult:
+    """`decided` (`select.with_nuisances`'s), or where it chose nuisances the caller did not
+    give, the fit with them from its lens and the photo's say in the treatment again
+    (`_photo_says`): a photo darker than the model made the footprint correction look worse
+    (the ray-traced fgbg at exposure x 0.85 dropped it, focus 5 % off)."""
+    on = canonical(k for k, v in (decided.nuisances or {}).items() if v.get("fitted"))
+    if on == call["nuisances"]:
+        return decided
+    call = {**call, "nuisances": on, "test": ()}  # decided: no score tests again
+    start = {"init": decided.lenses, "starts": 1, "pyramid": None}
+    same = same_pixels(decided)
+    try:
+        again = _fit_treated(**{**call, **start, **same})
+        again = _photo_says(again, {**call, **same}, rounding)
+    except ValueError:
+        return decided
+    return decisions(again, decided, asked)
 
 
 def _photo_says(result: FitResult, call: dict, rounding: float) -> FitResult:

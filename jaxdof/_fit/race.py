@@ -118,8 +118,7 @@ def race(
     options = {} if options is None else options
     tags: frozenset = frozenset()
 
-    def init(y):
-        return solver.init(fn, y, args, options, f_struct, None, tags)
+    init = lambda y: solver.init(fn, y, args, options, f_struct, None, tags)
 
     def step(y, state):
         y, state, _ = solver.step(fn, y, args, options, state, tags)
@@ -135,13 +134,6 @@ def race(
     )
     dynamic0, static = eqx.partition(state0, eqx.is_array)
     n_starts = y0s.shape[0]
-    n, p, floor = tie
-
-    def loss_of(state) -> Float[Array, " S"]:
-        r = _accepted_residual(state)
-        assert r is not None  # checked on the initial state; the state's type does not change
-        r = r.astype(jnp.result_type(float))
-        return 0.5 * jnp.sum(r * r, axis=-1)
 
     def cond(carry):
         _, _, _, running, _, _, _, t = carry
@@ -157,39 +149,16 @@ def race(
         result = _where(running, new_result, result)
         steps = steps + running.astype(steps.dtype)
         t = t + 1
-        loss = loss_of(eqx.combine(dynamic, static))
+        loss = _accepted_loss(eqx.combine(dynamic, static))
         ok = result == optx.RESULTS.successful
         running = running & ~done & ok
-        converged = ~running & ~stopped & ok
-        best = jnp.min(jnp.where(converged, loss, jnp.inf))
-        # `history[t % w]` holds the loss after step `t - w` (step 0 is the dummy before the
-        # first evaluation, hence `t > w`).
-        slot = t % window
-        before = history[slot]
-        behind = cannot_catch_up(
-            before,
-            loss,
-            (max_steps - t).astype(loss.dtype),
-            window,
-            best + tie_margin(best, n, p, floor),
-        )
-        stop = running & (t > window) & jnp.isfinite(best) & behind
-        running = running & ~stop
-        stopped = stopped | stop
-        history = history.at[slot].set(loss)
-        return ys, dynamic, result, running, stopped, steps, history, t
+        stop, history = _pace(running, stopped, ok, loss, history, t, max_steps, window, tie)
+        return ys, dynamic, result, running & ~stop, stopped | stop, steps, history, t
 
-    dtype = jnp.result_type(float)
-    carry = (
-        y0s,
-        dynamic0,
-        result0,
-        ~done0 & (result0 == optx.RESULTS.successful),
-        jnp.zeros(n_starts, bool),
-        jnp.zeros(n_starts, jnp.int32),
-        jnp.full((window, n_starts), jnp.inf, dtype),
-        jnp.array(0, jnp.int32),
-    )
+    running0 = ~done0 & (result0 == optx.RESULTS.successful)
+    history0 = jnp.full((window, n_starts), jnp.inf, jnp.result_type(float))
+    stopped0, steps0 = jnp.zeros(n_starts, bool), jnp.zeros(n_starts, jnp.int32)
+    carry = (y0s, dynamic0, result0, running0, stopped0, steps0, history0, jnp.array(0, jnp.int32))
     ys, dynamic, result, running, stopped, steps, _, _ = jax.lax.while_loop(cond, body, carry)
     state = eqx.combine(dynamic, static)
     # Out of budget: still running at the end, or stopped by the pace rule.
@@ -197,10 +166,29 @@ def race(
     result = eqx.filter_vmap(
         lambda m, r: optx.RESULTS.where(m, optx.RESULTS.nonlinear_max_steps_reached, r)
     )(out_of_steps, result)
+    post = lambda y, st, r: solver.postprocess(fn, y, None, args, options, st, tags, r)[0]
+    return eqx.filter_vmap(post)(ys, state, result), result, steps, state, stopped
 
-    def post(y, state, result):
-        y, _, _ = solver.postprocess(fn, y, None, args, options, state, tags, result)
-        return y
 
-    ys = eqx.filter_vmap(post)(ys, state, result)
-    return ys, result, steps, state, stopped
+def _accepted_loss(state) -> Float[Array, " S"]:
+    """Each start's loss at its last accepted step (in the default float dtype)."""
+    r = _accepted_residual(state)
+    assert r is not None  # checked on the initial state; the state's type does not change
+    r = r.astype(jnp.result_type(float))
+    return 0.5 * jnp.sum(r * r, axis=-1)
+
+
+def _pace(running, stopped, ok, loss, history, t, max_steps: int, window: int, tie):
+    """The pace rule after step `t`: which running starts to stop (they cannot reach the best
+    converged loss plus the tie margin in the steps left), and the loss history with this step's.
+    `history[t % window]` holds the loss after step `t - window` (step 0 is the dummy before the
+    first evaluation, hence `t > window`)."""
+    converged = ~running & ~stopped & ok
+    best = jnp.min(jnp.where(converged, loss, jnp.inf))
+    slot = t % window
+    target = best + tie_margin(best, *tie)
+    behind = cannot_catch_up(
+        history[slot], loss, (max_steps - t).astype(loss.dtype), window, target
+    )
+    stop = running & (t > window) & jnp.isfinite(best) & behind
+    return stop, history.at[slot].set(loss)
