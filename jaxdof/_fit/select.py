@@ -242,16 +242,9 @@ def with_nuisances(
             refit = fit(**{**call, **_as_chosen(result, call), **start, "nuisances": on})
         except ValueError:
             continue
-        base = result
-        if not failed and _residuals(refit) != _residuals(result):
-            # The registration's reach left edge pixels out, whose misfit may differ: the fit
-            # without it again on the same pixels (the band is a weight: the same programs).
-            try:
-                base = fit(**{**call, **_as_chosen(result, call), **start, "border": refit.border})
-            except ValueError:
-                continue
-            if _status(base) not in ("successful", "inconsistent"):
-                base = result
+        base = result if failed else _on_pixels_of(refit, result, call, fit, start)
+        if base is None:
+            continue
         gain = explained(refit, base)
         entries[pick]["explains"] = gain
         ok = _status(refit) in ("successful", "inconsistent")
@@ -270,6 +263,19 @@ def with_nuisances(
         result, entries = dataclasses.replace(refit, treatment=treatment), tested
         call = {**call, "nuisances": on}
     return dataclasses.replace(result, nuisances=entries)
+
+
+def _on_pixels_of(refit: FitResult, result: FitResult, call: dict, fit, start: dict):
+    """`result` (the fit without the nuisance), on `refit`'s pixels: the registration's reach
+    leaves edge pixels out, whose misfit may differ, so where they differ the fit again with
+    `refit`'s band (a weight: the same programs). `None` where that fit is refused."""
+    if _residuals(refit) == _residuals(result):
+        return result
+    try:
+        base = fit(**{**call, **_as_chosen(result, call), **start, "border": refit.border})
+    except ValueError:
+        return None
+    return base if _status(base) in ("successful", "inconsistent") else result
 
 
 def decisions(final: FitResult, decided: FitResult, asked: dict[str, bool | None]) -> FitResult:
