@@ -370,11 +370,12 @@ def _read_weight(path: str, photo: tuple[int, ...]) -> np.ndarray:
     return w
 
 
-def _photo_exif(args) -> ExifLens | None:
-    """The first TARGET's EXIF lens fields: `None` with `--no-exif`, for a file that holds no
-    EXIF (`.npy`), or when it has no lens fields. Its pixels were read already, so metadata that
-    cannot be parsed is a note, and the fit goes on without it."""
-    path = args.targets[0]
+def _photo_exif(args, path: str | None = None) -> ExifLens | None:
+    """A photo's EXIF lens fields (`path`, by default the first TARGET's): `None` with
+    `--no-exif`, for a file that holds no EXIF (`.npy`), or when it has no lens fields. Its pixels
+    were read already, so metadata that cannot be parsed is a note, and the command goes on
+    without it."""
+    path = args.targets[0] if path is None else path
     if args.no_exif or _suffix(path) not in EXIF_SUFFIXES:
         return None
     try:
@@ -797,17 +798,6 @@ def run_chart(args) -> int:
     return 0
 
 
-def _calibrate_exif(args, path: str) -> ExifLens | None:
-    if args.no_exif or _suffix(path) not in EXIF_SUFFIXES:
-        return None
-    try:
-        exif = read_exif(path)
-    except ValueError as err:
-        note(f"{err}; its EXIF is not used")
-        return None
-    return exif if exif.has_lens else None
-
-
 def run_calibrate(args) -> int:
     """`jaxdof calibrate`: find the chart in each photo (before anything is compiled), then fit."""
     with library_checks():
@@ -827,7 +817,7 @@ def run_calibrate(args) -> int:
             with library_checks():
                 views.append(jaxdof.detect_chart(photo, chart, name=path))
             photos.append(photo)
-        exifs = [_calibrate_exif(args, p) for p in args.photos]
+        exifs = [_photo_exif(args, p) for p in args.photos]
         shape = photos[0].shape
         pitch = None if args.sensor_width is None else args.sensor_width / shape[1]
         luma = True if any(chroma_subsampled(p) for p in args.photos) else None
