@@ -169,7 +169,7 @@ def _check_depth(depth: Array, lens: ThinLens) -> None:
             )
 
 
-def _error_if_invalid(depth: Array, lens: ThinLens, *, on_error: str = "raise") -> Array:
+def _error_if_invalid(depth: Array, lens: ThinLens, *, on_error: str = "default") -> Array:
     """`depth`, with run-time checks of `depth > focal_length` and of the lens attached
     (`on_error="nan"`: NaN where they fail, without the host callback that raising needs, so
     that the program can be kept in the persistent compilation cache).

@@ -272,11 +272,11 @@ def slant_scene():
     return image, depth, rng
 
 
-def fit_from_truth(image, depth, target, truth, border=0):
+def fit_from_truth(image, depth, target, truth, border=0, **options):
     """`fit_lens` from the truth, one start (the check, not the search for the basin, is under
     test), and its largest |error| / reported standard error over (N, d_f). `border=0` by
     default: every pixel, as in the study's main table (fits/results/adequacy_border0.md)."""
-    kw = dict(free=FREE, max_radius=WINDOW, starts=1, border=border, **EXACT)
+    kw = dict(free=FREE, max_radius=WINDOW, starts=1, border=border, **EXACT, **options)
     fit = jaxdof.fit_lens(image, depth, target, truth, **kw)
     err = np.array(
         [
@@ -308,7 +308,7 @@ def vignetted_target(strength):
 )
 def test_strong_vignetting_inflation_covers_the_error():
     image, depth, target, truth = vignetted_target(0.5)
-    fit, z = fit_from_truth(image, depth, target, truth)
+    fit, z = fit_from_truth(image, depth, target, truth, vignetting=False)
     assert fit.status == jaxdof.RESULTS.inconsistent
     assert z <= 3
 
@@ -325,7 +325,7 @@ def test_a_fit_the_model_explains_passes_and_vignetting_fires():
     assert bool(fit.adequacy["adequate"]) and float(fit.adequacy["inflation"]) == 1.0
     assert fit.stderr_kind == "noise" and fit.to_dict()["adequacy"]["adequate"] is True
     _, _, target, _ = vignetted_target(0.5)
-    bad, _ = fit_from_truth(image, depth, target, truth)
+    bad, _ = fit_from_truth(image, depth, target, truth, vignetting=False)  # the model lacks it
     assert bad.status == jaxdof.RESULTS.inconsistent and bool(bad.success)
     assert not bool(bad.adequacy["adequate"]) and float(bad.adequacy["p_value"]) < 1e-4
     inflation = float(bad.adequacy["inflation"])
@@ -343,12 +343,16 @@ def test_a_fit_the_model_explains_passes_and_vignetting_fires():
 
 
 def test_moderate_vignetting_is_flagged_and_covered():
-    """Vignetting as in fits/adequacy.py (`1 - 0.3 rho^2`): flagged, and the inflated standard
-    errors cover the actual error (within 3)."""
+    """Vignetting as in fits/adequacy.py (`1 - 0.3 rho^2`) that the model lacks (forced off):
+    flagged, and the inflated standard errors cover the actual error (within 3). By default the
+    photo asks for the vignetting: fitted, and the fit explains the photo."""
     image, depth, target, truth = vignetted_target(0.3)
-    fit, z = fit_from_truth(image, depth, target, truth)
+    fit, z = fit_from_truth(image, depth, target, truth, vignetting=False)
     assert fit.status == jaxdof.RESULTS.inconsistent
     assert z <= 3
+    fit, z = fit_from_truth(image, depth, target, truth)
+    assert fit.nuisances is not None and fit.nuisances["vignetting"]["fitted"]
+    assert fit.status == jaxdof.RESULTS.successful and z <= 3
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])

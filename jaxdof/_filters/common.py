@@ -82,13 +82,14 @@ def check_max_radius(max_radius, radius) -> float:
 
 
 # What a traced check does when it fails (`equinox.error_if`'s `on_error`), read at trace time:
-# "raise", or "nan" inside a model that asks for no host callbacks (`DefocusModel.checks`).
-_ON_ERROR: contextvars.ContextVar[str] = contextvars.ContextVar("on_error", default="raise")
+# "default" (equinox's `EQX_ON_ERROR`, raising unless set), or "nan" inside a model that asks
+# for no host callbacks (`DefocusModel.checks`).
+_ON_ERROR: contextvars.ContextVar[str] = contextvars.ContextVar("on_error", default="default")
 
 
 @contextlib.contextmanager
 def traced_checks(on_error: str) -> Iterator[None]:
-    """Within the block, traced radius checks do `on_error` (`"raise"` or `"nan"`) on failure."""
+    """Within the block, traced radius checks do `on_error` (`"default"` or `"nan"`) on failure."""
     token = _ON_ERROR.set(on_error)
     try:
         yield

@@ -186,7 +186,7 @@ class DefocusModel(AbstractForwardModel):
         s = _check_downsample(self.downsample, image.shape)
         method = as_method(self.method)
         _check_depth(depth, lens)  # concrete: ValueError now; traced: checked at run time
-        depth = _error_if_invalid(depth, lens, on_error="raise" if self.checks else "nan")
+        depth = _error_if_invalid(depth, lens, on_error="default" if self.checks else "nan")
         radius = _abs(
             _signed_coc_radius_from_power(
                 depth, lens.focal_length, lens.f_number, lens.focus_power, lens.pixel_pitch
@@ -196,7 +196,7 @@ class DefocusModel(AbstractForwardModel):
         radius, window = radius * s, max_radius * s
         if self.footprint:
             image = footprint_prefilter(image, jnp.minimum(radius, window))
-        with traced_checks("raise" if self.checks else "nan"):
+        with traced_checks("default" if self.checks else "nan"):
             out = coc_filter(
                 image,
                 radius,
