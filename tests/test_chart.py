@@ -2,6 +2,7 @@
 its scene (image and depth), and `calibrate` end to end, on small synthetic photos: the chart
 warped by a known pose and blurred by `jaxdof.render`."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -110,6 +111,11 @@ def test_files_round_trip(chart, tmp_path):
     assert np.array_equal(raster, raster2)
     assert c2.markers.keys() == c.markers.keys()
     assert all(np.allclose(c2.markers[i], c.markers[i]) for i in c.markers)
+    assert np.allclose(c2.frame, c.frame) and c2.frame_width_m == c.frame_width_m
+    # the raster drawn again from the sidecar's parameters alone (for `detect_chart` without it)
+    from jaxdof._chart._design import raster_of
+
+    assert np.array_equal(raster_of(dataclasses.replace(c2)), raster)
     assert (c2.width_m, c2.texture_px, c2.seed, c2.dictionary) == (
         c.width_m,
         c.texture_px,
@@ -132,6 +138,9 @@ def test_files_round_trip(chart, tmp_path):
 
 def test_monitor_chart(tmp_path):
     c, raster = jaxdof.make_chart(monitor=True, screen_px=(320, 200), screen_width_m=0.3, seed=4)
+    from jaxdof._chart._design import raster_of
+
+    assert np.array_equal(raster_of(dataclasses.replace(c)), raster)
     assert c.monitor and c.texture_px == (320, 200) and raster.shape == (200, 320)
     assert c.width_m == pytest.approx(0.3) and c.height_m == pytest.approx(0.3 * 200 / 320)
     paths = jaxdof.write_chart(tmp_path / "m", c, raster)
@@ -220,23 +229,158 @@ def test_scene_minified(chart):
 # Detection
 
 
+def _outline_error(view, truth, points) -> float:
+    """The largest distance (px) between the view's and the truth's images of `points` (m)."""
+
+    def project(h):
+        p = np.column_stack([points, np.ones(len(points))]) @ h.T
+        return p[:, :2] / p[:, 2:]
+
+    return float(np.abs(project(view.homography) - project(truth)).max())
+
+
+def test_design_has_a_frame(chart):
+    """A dark band around the markers and the texture, a white zone outside it."""
+    c, raster = chart
+    band = round(c.frame_width_m / c.pitch[0])
+    (x0, y0), (x1, y1) = np.round(c.frame[[0, 2]] / c.pitch).astype(int)
+    assert band >= 0.08 * min(raster.shape)
+    assert np.all(raster[y0 : y0 + band, x0:x1] < 0.06)  # the band: black
+    assert np.all(raster[y0 + 2 : y1 - 2, x0 : x0 + band] < 0.06)
+    assert np.all(raster[:y0, :] > 0.94) and np.all(raster[:, x1:] > 0.94)  # white outside
+    for corners in c.markers.values():  # the markers inside the band
+        assert np.all(corners >= c.frame[0] + c.frame_width_m)
+        assert np.all(corners <= c.frame[2] - c.frame_width_m)
+
+
+# Defocused photos: 480 x 360 pixels, the chart about 300 px wide, seen through a camera of
+# focal length 570 px, blurred by a uniform disc (a thin lens's circle of confusion).
+WIDE = (360, 480)
+F_WIDE = 570.0
+
+
+def _disc(diameter):
+    r = diameter / 2
+    n = int(math.ceil(r)) + 1
+    off = (np.arange(8) + 0.5) / 8 - 0.5
+    y, x = np.mgrid[-n : n + 1, -n : n + 1].astype(float)
+    k = ((x[..., None, None] + off[:, None]) ** 2 + (y[..., None, None] + off) ** 2 <= r * r).mean(
+        axis=(-1, -2)
+    )
+    return (k / k.sum()).astype(np.float32)
+
+
+def _defocused(c, raster, pose, coc, seed=0):
+    """An 8-bit sRGB photo of the chart at `pose` before a mottled wall, lit unevenly (a gain
+    from 0.6 to 1.3 across), blurred by a disc of `coc` px, with noise; and the true
+    homography."""
+    import cv2
+
+    camera = camera_matrix(F_WIDE, WIDE)
+    sharp, depth = jaxdof.chart_scene(c, raster, pose, camera, WIDE)
+    rng = np.random.default_rng(seed)
+    wall = cv2.GaussianBlur(rng.uniform(0, 1, WIDE).astype(np.float32), (0, 0), 6)
+    wall = 0.05 + 0.5 * (wall - wall.min()) / np.ptp(wall)
+    img = np.where(np.isnan(depth), wall, sharp).astype(np.float32)
+    img = img * np.linspace(0.6, 1.3, WIDE[1], dtype=np.float32)
+    img = cv2.filter2D(img, -1, _disc(coc), borderType=cv2.BORDER_REFLECT)
+    img = np.clip(img + rng.normal(0, 0.003, WIDE), 0, 1)
+    codes = np.round(jaxdof._io.linear_to_srgb(img) * 255).astype(np.uint8)
+    return codes, pose.homography(camera)
+
+
+def _rolled(c, ax, ay, roll, distance):
+    """`_pose`, then turned by `roll` degrees about the optical axis."""
+    pose = _pose(c, ax, ay, distance)
+    a = math.radians(roll)
+    rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    return jaxdof.ChartPose(rz @ pose.rotation, rz @ pose.translation)
+
+
+@pytest.fixture(scope="module")
+def wide_chart():
+    return jaxdof.make_chart(dpi=50, seed=7)
+
+
+@pytest.mark.parametrize(
+    "ax, ay, roll, distance, coc",
+    [
+        (0, 25, 0, 0.62, 15.0),  # circles wider than the markers' cells: none decoded
+        (10, -40, 90, 0.62, 9.0),  # a quarter turn: the texture says which way round
+        (0, 60, 180, 0.5, 15.0),  # steep and upside down
+        (-30, 35, 270, 0.6, 4.0),
+    ],
+)
+def test_detect_defocused(wide_chart, ax, ay, roll, distance, coc):
+    """Circles of 4-15 px on a chart about 300 px wide at tilts of 25-60 degrees, turned any way
+    round: the frame's outline, the orientation from the texture, the homography refined against
+    the photo: the chart's corners within half a pixel of the truth, the blur measured."""
+    c, raster = wide_chart
+    pose = _rolled(c, ax, ay, roll, distance)
+    photo, truth = _defocused(c, raster, pose, coc)
+    view = jaxdof.detect_chart(photo, c)
+    assert 24 < pose.tilt < 61
+    assert view.method == "outline" and view.shape == WIDE
+    assert _outline_error(view, truth, c.corners) < 0.5
+    assert view.coc_px == pytest.approx(coc, rel=0.15)
+    assert view.correlation > 0.95
+    # the pose from the refined homography's grid
+    points, pixels = view.grid()
+    assert points.shape == pixels.shape == (25, 2)
+
+
+def test_detect_reduces_large_photos(wide_chart, monkeypatch):
+    """A photo larger than the working size: the frame found and the homography refined on the
+    photo reduced (here by 2), mapped back to the photo's pixels."""
+    from jaxdof._chart import _detect
+
+    c, raster = wide_chart
+    pose = _rolled(c, 10, 45, 200, 0.6)
+    photo, truth = _defocused(c, raster, pose, 10.0)
+    monkeypatch.setattr(_detect, "_WORK_PIXELS", 50_000)
+    view = jaxdof.detect_chart(photo, c)
+    assert view.method == "outline" and view.shape == WIDE
+    assert _outline_error(view, truth, c.corners) < 1.0  # half a reduced pixel
+    assert view.coc_px == pytest.approx(10.0, rel=0.15)
+
+
+def test_refinement_converges(wide_chart):
+    """The photometric refinement from a start 1.5 px off at the corners: within 0.2 px of the
+    truth over the frame."""
+    from jaxdof._chart._detect import _linear, _refine, _Template
+
+    c, raster = wide_chart
+    pose = _rolled(c, 15, 40, 30, 0.62)
+    photo, truth = _defocused(c, raster, pose, 8.0, seed=3)
+    frame = c.frame
+    p = np.column_stack([frame, np.ones(4)]) @ truth.T
+    off = np.array([[1.5, -1.0], [-1.0, -1.5], [1.0, 1.5], [-1.5, 1.0]])
+    import cv2
+
+    start = cv2.getPerspectiveTransform(
+        frame.astype(np.float32), (p[:, :2] / p[:, 2:] + off).astype(np.float32)
+    )
+    light = _linear(photo)
+    hom, coc, corr = _refine(light, _Template(c, raster, start, light.shape), start)
+    view = jaxdof.ChartView(
+        np.zeros(0, int), np.zeros((0, 4, 2)), np.zeros((0, 4, 2)), hom, 0.0, 0, WIDE, 0.5
+    )
+    assert _outline_error(view, truth, frame) < 0.2
+    assert coc == pytest.approx(8.0, rel=0.15) and corr > 0.95
+
+
 @pytest.mark.parametrize("f_number, focus", [(16.0, 0.45), (2.0, 0.5), (1.4, 0.55)])
 def test_detect_blurred(chart, tilted, f_number, focus):
-    """The markers under defocus (circles up to 0.2, 2.2 and 3.7 px here; markers of
-    about 40 px, cells of 7): the homography agrees
-    with the truth's within a pixel or two at the chart's corners."""
+    """Photos from `jaxdof.render` (circles up to 0.2, 2.2 and 3.7 px here; cells of 7 px): by
+    the markers where 4 are decoded, else by the frame; the chart's corners within half a pixel
+    of the truth's."""
     c, raster = chart
     pose, camera, scene = tilted
     photo = _photo(scene, _lens(f_number, focus), noise=0.002)
     view = jaxdof.detect_chart(photo, c)
-    assert view.markers >= 4 and view.error < 2.0 and view.shape == SHAPE
-    outline = np.array([[0, 0], [c.width_m, 0], [c.width_m, c.height_m], [0, c.height_m]])
-
-    def project(h):
-        p = np.column_stack([outline, np.ones(4)]) @ h.T
-        return p[:, :2] / p[:, 2:]
-
-    assert np.abs(project(view.homography) - project(pose.homography(camera))).max() < 2.5
+    assert view.shape == SHAPE and view.error < 2.0
+    assert view.method == ("markers" if view.markers >= 4 else "outline")
+    assert _outline_error(view, pose.homography(camera), c.corners) < 0.5
 
 
 def test_detect_errors(chart, tilted):
@@ -250,14 +394,41 @@ def test_detect_errors(chart, tilted):
     other, _ = jaxdof.make_chart(dpi=40, seed=2, marker_fraction=0.2)
     with pytest.raises(jaxdof.ChartError, match="of this chart's .*is the sidecar"):
         jaxdof.detect_chart(photo, other)
-    # most markers hidden
+    # most markers hidden: the frame, oriented by the markers left
     view = jaxdof.detect_chart(photo, c)
     hidden = photo.copy()
     for corners in view.corners[2:]:
         lo, hi = corners.min(0).astype(int) - 3, corners.max(0).astype(int) + 4
         hidden[lo[1] : hi[1], lo[0] : hi[0]] = 0.5
+    found = jaxdof.detect_chart(hidden, c)
+    assert found.method == "outline" and found.markers == 2
+    assert _outline_error(found, pose.homography(camera), c.corners) < 0.5
+    # ... and the frame's corner hidden too
+    u, v = np.round(view.outline[0]).astype(int)
+    hidden[max(0, v - 30) : v + 30, max(0, u - 30) : u + 30] = 0.5
     with pytest.raises(jaxdof.ChartError, match=r"2 of the chart's \d+ markers found, 4 needed"):
         jaxdof.detect_chart(hidden, c)
+
+
+def test_detect_another_charts_frame(wide_chart):
+    """A defocused photo of another chart (no marker decoded): its frame is found, but its
+    inside does not match this chart's."""
+    c, raster = wide_chart
+    other, other_raster = jaxdof.make_chart(dpi=50, seed=8)
+    photo, _ = _defocused(other, other_raster, _rolled(other, 0, 35, 0, 0.62), 12.0)
+    with pytest.raises(jaxdof.ChartError, match="does not match this chart's"):
+        jaxdof.detect_chart(photo, c)
+    with pytest.raises(jaxdof.ChartError, match="does not match this chart's"):
+        jaxdof.detect_chart(photo, c, image=raster)
+
+
+def test_detect_without_frame_needs_markers(wide_chart):
+    """A chart of an older sidecar (no frame): the markers alone, as before."""
+    c, raster = wide_chart
+    legacy = dataclasses.replace(c, frame=None, frame_width_m=0.0)
+    photo, _ = _defocused(c, raster, _rolled(c, 0, 35, 0, 0.62), 12.0)
+    with pytest.raises(jaxdof.ChartError, match="no chart found"):
+        jaxdof.detect_chart(photo, legacy, image=raster)
 
 
 # ----------------------------------------------------------------------------------------------

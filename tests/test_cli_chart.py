@@ -25,6 +25,7 @@ def test_chart_writes_files(sidecar, capsys):
     assert {p.name for p in d.iterdir()} >= {"c.png", "c.pdf", "c.json"}
     side = json.loads(sidecar.read_text())
     assert side["seed"] == 3 and side["dpi"] == 40 and side["png"] == "c.png"
+    assert len(side["frame"]) == 4 and side["frame_width_m"] > 0  # the dark frame's outline
     chart, raster = jaxdof.read_chart(sidecar)
     again, raster2 = jaxdof.make_chart(dpi=40, seed=3)
     assert np.array_equal(raster, raster2) and chart.markers.keys() == again.markers.keys()

@@ -43,7 +43,7 @@ class ChartCalibration:
     **Fields:**
 
     - `fit`: the `jaxdof.FitResult` of `jaxdof.fit_lens` (`fit.lens`, `fit.stderr`, ...).
-    - `views`: the chart found in each photo (`ChartView`: markers, homography, its error).
+    - `views`: the chart found in each photo (`ChartView`: how, the homography, its error).
     - `poses`: the chart's pose in each photo (`ChartPose`; `tilt` in degrees).
     - `camera`: the intrinsic matrix `K` (pixels) used.
     - `focal_px`: its focal length (pixels): the lens-to-sensor distance over the pixel pitch.
@@ -69,7 +69,8 @@ class ChartCalibration:
 
     def to_dict(self) -> dict[str, Any]:
         """The chart's part as JSON-ready values (SI units, angles in degrees): per photo the
-        markers found, the homography's error (px), the tilt and the pose; the intrinsics."""
+        markers decoded, how the chart was found, the homography's error (px), the blur and
+        correlation it was refined at, the tilt and the pose; the intrinsics."""
         return {
             "focal_px": self.focal_px,
             "intrinsics": self.intrinsics,
@@ -77,6 +78,9 @@ class ChartCalibration:
             "photos": [
                 {
                     "markers": v.markers,
+                    "found_by": v.method,
+                    "coc_px": v.coc_px,
+                    "correlation": v.correlation,
                     "inliers": v.inliers,
                     "reprojection_error_px": v.error,
                     "cover": v.cover,
@@ -151,7 +155,9 @@ def calibrate(
     exifs = list(exif) if isinstance(exif, Sequence) else [exif] * n
     if len(exifs) != n:
         raise ValueError(f"exif: {len(exifs)} given for {n} photos")
-    found = list(views) if views is not None else [detect_chart(p, chart) for p in photos]
+    found = (
+        list(views) if views is not None else [detect_chart(p, chart, image=image) for p in photos]
+    )
     _one_scene(found)
     first = exifs[0] or ExifLens()
     h, w = shape[:2]
@@ -181,7 +187,7 @@ def calibrate(
             "give the sensor width or the focal length"
         )
     camera = camera_matrix(f_px, shape)
-    poses = [chart_pose(v.points.reshape(-1, 2), v.corners.reshape(-1, 2), camera) for v in found]
+    poses = [chart_pose(*v.grid(), camera) for v in found]
     tilt = min(p.tilt for p in poses)
     if tilt < _MIN_TILT:
         raise ChartError(_facing(tilt))
@@ -236,10 +242,9 @@ def _focal_px(view: ChartView, f: float, pitch: float, focus: float | None) -> f
     (given, else the chart's median distance from a first pose at `f / p`)."""
     if focus is None:
         camera = camera_matrix(f / pitch, view.shape)
-        pose = chart_pose(view.points.reshape(-1, 2), view.corners.reshape(-1, 2), camera)
-        focus = float(
-            pose.translation[2] + pose.rotation[2, :2] @ view.points.reshape(-1, 2).mean(0)
-        )
+        points, pixels = view.grid()
+        pose = chart_pose(points, pixels, camera)
+        focus = float(pose.translation[2] + pose.rotation[2, :2] @ points.mean(0))
         focus = max(focus, 2 * f)
     return f * focus / (focus - f) / pitch
 
@@ -258,7 +263,7 @@ def _one_scene(views: list[ChartView]) -> None:
     h, w = ref.shape
     centre = np.array([(w - 1) / 2, (h - 1) / 2])
     corners = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
-    pts = ref.points.reshape(-1, 2)
+    pts = ref.grid(2)[0]
     lo, hi = pts.min(0), pts.max(0)
     outline = lo + corners * (hi - lo)
 

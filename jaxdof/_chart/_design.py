@@ -1,7 +1,9 @@
-r"""The calibration chart: a ring of ArUco markers around a dead-leaves texture.
+r"""The calibration chart: a thick dark frame, a ring of ArUco markers inside it, and a
+dead-leaves texture within the ring.
 
-The markers give the chart's pose in a photo (`_detect`, `_geometry`); the texture, which has
-energy at every spatial frequency, is what the fit measures the blur from. The chart is a raster
+The markers give the chart's pose in a sharp photo, the frame's outline in a blurred one
+(`_detect`, `_geometry`); the texture, which has energy at every spatial frequency, is what the
+fit measures the blur from and what the pose is refined against. The chart is a raster
 of reflectances (linear light), a deterministic function of its parameters: the same parameters
 give the same raster bit for bit (`numpy.random.default_rng(seed)` and OpenCV's integer disc
 drawing), and the sidecar (`_files`) holds its SHA-256.
@@ -10,6 +12,7 @@ drawing), and the sidecar (`_files`) holds its SHA-256.
 from __future__ import annotations
 
 import dataclasses
+import weakref
 
 import numpy as np
 from jaxtyping import Float
@@ -24,6 +27,11 @@ LOW, HIGH = 0.05, 0.95
 MARKER_FRACTION = 1 / 8
 _QUIET = 0.25
 _PAPER_MARGIN = 0.005
+# The frame's band and the white zone outside it, as fractions of the chart's short side: the
+# band's outer edge stays a clean step under circles of confusion up to about the white zone's
+# width plus the paper margin, and the band stays dark under circles up to its own width.
+FRAME_FRACTION = 1 / 12
+_FRAME_QUIET = 1 / 24
 # Dead leaves: disc radii (raster pixels) with density ~ 1/r^3 from `_R_MIN` to the chart's short
 # side times `_R_MAX`; painted until `_COVERED` of the raster is covered, then the gaps are
 # filled by discs centred in them.
@@ -50,6 +58,9 @@ class Chart:
     - `monitor`: a chart shown on a screen (emissive, no print margin) rather than printed.
     - `dpi`: raster pixels per inch (for a screen, its pixel density).
     - `marker_fraction`: the markers' side asked for, over the chart's short side.
+    - `frame`: the dark frame's outer corners `(4, 2)` (m; top-left, top-right, bottom-right,
+      bottom-left), or `None` for a chart without one (a sidecar of an older version).
+    - `frame_width_m`: the frame band's width (m).
     """
 
     width_m: float
@@ -61,6 +72,8 @@ class Chart:
     monitor: bool = False
     dpi: float = 300.0
     marker_fraction: float = MARKER_FRACTION
+    frame: np.ndarray | None = None
+    frame_width_m: float = 0.0
 
     @property
     def pitch(self) -> tuple[float, float]:
@@ -69,7 +82,14 @@ class Chart:
 
     def marker_points(self, ids) -> np.ndarray:
         """The corners `(n, 4, 2)` (m) of the markers `ids`, in the order given."""
-        return np.stack([self.markers[int(i)] for i in ids]).astype(np.float64)
+        pts = [self.markers[int(i)] for i in ids]
+        return np.stack(pts).astype(np.float64) if pts else np.zeros((0, 4, 2))
+
+    @property
+    def corners(self) -> np.ndarray:
+        """The chart's (the raster's) corners `(4, 2)` (m), clockwise from the top-left."""
+        w, h = self.width_m, self.height_m
+        return np.array([[0, 0], [w, 0], [w, h], [0, h]], np.float64)
 
 
 def make_chart(
@@ -102,9 +122,11 @@ def make_chart(
     **Returns:** `(chart, raster)`: the `Chart` and its reflectance (linear light), float32
     `(height, width)` in `[0.05, 0.95]`: for a screen, the emitted linear light.
 
-    **Layout.** A ring of markers (ids drawn from the dictionary by `seed`, so a chart of another
-    seed is told apart) inside a white quiet zone of a quarter of their side, within a 5 mm
-    unprinted margin on paper; everything else is a dead-leaves texture: opaque discs of uniform
+    **Layout.** From the outside in: a 5 mm unprinted margin on paper, a white zone of 1/24 of
+    the short side, a black frame 1/12 of the short side wide (its outer edge and corners are
+    found in photos too blurred for the markers' codes), a ring of markers (ids drawn from the
+    dictionary by `seed`, so a chart of another seed is told apart) each in a white quiet zone
+    of a quarter of its side; everything else is a dead-leaves texture: opaque discs of uniform
     random grey, radius density `p(r) ~ 1/r^3` from 1.5 raster pixels to 1/12 of the short side,
     stacked until they cover the chart. The model is scale invariant, with a power spectrum
     `~ 1/f^2` at every frequency up to the raster's Nyquist (Lee, Mumford & Huang, "Occlusion
@@ -139,13 +161,20 @@ def make_chart(
     if not 0.05 <= marker_fraction <= 0.3:
         raise ValueError(f"marker_fraction must be within [0.05, 0.3], got {marker_fraction}")
     side = int(min(nx, ny) * marker_fraction) // _CELLS * _CELLS
+    band = max(1, round(min(nx, ny) * FRAME_FRACTION))
+    outer = margin + max(1, round(min(nx, ny) * _FRAME_QUIET))  # the frame's outer edge (px)
     if side < 4 * _CELLS:
         raise ValueError(
             f"a {nx}x{ny}-pixel raster makes markers of {side} px: raise dpi or the chart's size"
         )
     aruco = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
     rng = np.random.default_rng(seed)
-    places = _ring(nx, ny, side, margin)
+    places = _ring(nx, ny, side, outer + band)
+    if places[-1][1] <= places[0][1] + side or places[-1][0] <= places[0][0] + side:
+        raise ValueError(
+            f"a {nx}x{ny}-pixel raster leaves no room inside its frame for markers of {side} px: "
+            "lower marker_fraction"
+        )
     n_ids = int(aruco.bytesList.shape[0])
     if len(places) > n_ids:
         raise ValueError(f"{dictionary} has {n_ids} markers, the layout needs {len(places)}")
@@ -154,6 +183,15 @@ def make_chart(
     white, black = (_code(v) for v in (HIGH, LOW))
     if margin:
         codes[:margin], codes[-margin:], codes[:, :margin], codes[:, -margin:] = (white,) * 4
+    codes[margin:outer, margin : nx - margin] = white
+    codes[ny - outer : ny - margin, margin : nx - margin] = white
+    codes[margin : ny - margin, margin:outer] = white
+    codes[margin : ny - margin, nx - outer : nx - margin] = white
+    inner = outer + band
+    codes[outer:inner, outer : nx - outer] = black
+    codes[ny - inner : ny - outer, outer : nx - outer] = black
+    codes[outer : ny - outer, outer:inner] = black
+    codes[outer : ny - outer, nx - inner : nx - outer] = black
     quiet = round(side * _QUIET)
     markers = {}
     for i, (x0, y0) in zip(ids, places):
@@ -172,8 +210,48 @@ def make_chart(
         monitor=bool(monitor),
         dpi=float(dpi),
         marker_fraction=float(marker_fraction),
+        frame=np.array(
+            [(outer, outer), (nx - outer, outer), (nx - outer, ny - outer), (outer, ny - outer)],
+            np.float64,
+        )
+        * pitch,
+        frame_width_m=band * pitch,
     )
-    return chart, decode(codes)
+    raster = decode(codes)
+    remember(chart, raster)
+    return chart, raster
+
+
+# Each chart's raster, while the chart lives: `make_chart` and `read_chart` put it here, so that a
+# photo can be matched against it (`_detect`) without drawing it again.
+_RASTERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def remember(chart: Chart, raster: np.ndarray) -> None:
+    _RASTERS[chart] = raster
+
+
+def raster_of(chart: Chart) -> np.ndarray:
+    """The raster of `chart`: the one it was made or read with, else drawn again from its
+    parameters (deterministic; seconds at 300 dpi)."""
+    raster = _RASTERS.get(chart)
+    if raster is None:
+        nx, ny = chart.texture_px
+        again, raster = make_chart(
+            width_m=chart.width_m,
+            height_m=chart.height_m,
+            dpi=chart.dpi,
+            seed=chart.seed,
+            monitor=chart.monitor,
+            screen_px=(nx, ny) if chart.monitor else None,
+            screen_width_m=chart.width_m if chart.monitor else None,
+            dictionary=chart.dictionary,
+            marker_fraction=chart.marker_fraction,
+        )
+        if again.texture_px != chart.texture_px or again.markers.keys() != chart.markers.keys():
+            raise ValueError("the chart's raster cannot be drawn again from its parameters")
+        remember(chart, raster)
+    return raster
 
 
 def _cv2():
@@ -198,12 +276,13 @@ def decode(codes: np.ndarray) -> np.ndarray:
     return levels[codes]
 
 
-def _ring(nx: int, ny: int, side: int, margin: int) -> list[tuple[int, int]]:
-    """Top-left corners (raster px) of markers in a ring along the chart's edges: a marker in
-    each corner and more spaced about one marker's cell apart along each side."""
+def _ring(nx: int, ny: int, side: int, inset: int) -> list[tuple[int, int]]:
+    """Top-left corners (raster px) of markers in a ring `inset` pixels inside the chart's
+    edges: a marker in each corner and more spaced about one marker's cell apart along each
+    side."""
     quiet = round(side * _QUIET)
     cell = side + 2 * quiet
-    lo = margin + quiet
+    lo = inset + quiet
     xs = _spread(lo, nx - lo - side, cell)
     ys = _spread(lo, ny - lo - side, cell)
     top = [(x, ys[0]) for x in xs]

@@ -13,7 +13,7 @@ import numpy as np
 from jaxtyping import Float
 
 from .._io import atomic_write, linear_to_srgb
-from ._design import Chart, decode
+from ._design import Chart, decode, remember
 
 
 _FORMAT = "jaxdof-chart"
@@ -41,7 +41,7 @@ def write_chart(
     reflectance); the PDF holds it (8-bit) at the chart's physical size, `chart.dpi` pixels per
     inch: print it at 100 % ("actual size"), then measure it. A screen's chart is shown from the
     PNG at one image pixel per screen pixel. The sidecar holds the design (size, dictionary,
-    marker corners, seed, dpi, monitor), the PNG's name and its SHA-256, which `read_chart`
+    marker corners, frame, seed, dpi, monitor), the PNG's name and its SHA-256, which `read_chart`
     checks.
     """
     stem = Path(stem)
@@ -77,6 +77,8 @@ def write_chart(
         "dpi": chart.dpi,
         "monitor": chart.monitor,
         "marker_fraction": chart.marker_fraction,
+        "frame": None if chart.frame is None else np.asarray(chart.frame).tolist(),
+        "frame_width_m": chart.frame_width_m,
         "png": paths[0].name,
         "sha256": hashlib.sha256(png).hexdigest(),
     }
@@ -111,6 +113,8 @@ def read_chart(sidecar: str | os.PathLike[str]) -> tuple[Chart, Float[np.ndarray
             monitor=bool(side["monitor"]),
             dpi=float(side["dpi"]),
             marker_fraction=float(side["marker_fraction"]),
+            frame=None if side.get("frame") is None else np.asarray(side["frame"], np.float64),
+            frame_width_m=float(side.get("frame_width_m", 0.0)),
         )
         png, digest = sidecar.with_name(side["png"]), str(side["sha256"])
     except (KeyError, TypeError, ValueError, IndexError) as err:
@@ -128,7 +132,9 @@ def read_chart(sidecar: str | os.PathLike[str]) -> tuple[Chart, Float[np.ndarray
     nx, ny = chart.texture_px
     if codes.shape != (ny, nx):
         raise ValueError(f"{png}: {codes.shape} pixels, {sidecar} says {(ny, nx)} (rows, columns)")
-    return chart, decode(codes)
+    raster = decode(codes)
+    remember(chart, raster)
+    return chart, raster
 
 
 def _png_bytes(codes: np.ndarray) -> bytes:

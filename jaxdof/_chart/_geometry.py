@@ -27,8 +27,9 @@ _BLOCK_ROWS = 64
 
 
 class ChartError(ValueError):
-    """A photo the chart cannot calibrate from: no chart found, too few markers, the chart too
-    small in the frame or too close to facing the camera, another chart's sidecar."""
+    """A photo the chart cannot calibrate from: no chart found (neither its frame nor enough
+    markers), the chart too small in the frame or too close to facing the camera, another
+    chart's sidecar."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,17 +91,16 @@ def focal_from_homographies(homographies: list[np.ndarray], shape: tuple[int, ..
 
 
 def refine_focal(views, f_px: float) -> float:
-    """The focal length (pixels) and poses that minimise the markers' reprojection error in every
-    view (`cv2.calibrateCamera` from `f_px`: square pixels, the principal point at the centre,
-    no distortion), which weighs the corners as the linear solution does not."""
+    """The focal length (pixels) and poses that minimise the reprojection error of a grid over the
+    chart (`ChartView.grid`, the refined homography's image) in every view
+    (`cv2.calibrateCamera` from `f_px`: square pixels, the principal point at the centre, no
+    distortion), which weighs the chart's extent as the linear solution does not."""
     import cv2
 
     shape = views[0].shape
-    obj = [
-        np.column_stack([v.points.reshape(-1, 2), np.zeros(4 * v.markers)]).astype(np.float32)
-        for v in views
-    ]
-    img = [v.corners.reshape(-1, 2).astype(np.float32) for v in views]
+    grids = [v.grid() for v in views]
+    obj = [np.column_stack([p, np.zeros(len(p))]).astype(np.float32) for p, _ in grids]
+    img = [q.astype(np.float32) for _, q in grids]
     flags = (
         cv2.CALIB_USE_INTRINSIC_GUESS
         | cv2.CALIB_FIX_PRINCIPAL_POINT
@@ -129,7 +129,7 @@ def chart_pose(
     img = np.asarray(pixels, np.float64)
     ok, rvec, tvec = cv2.solvePnP(obj, img, camera, None, flags=cv2.SOLVEPNP_IPPE)
     if not ok:
-        raise ChartError("the chart's pose cannot be solved from its markers")
+        raise ChartError("the chart's pose cannot be solved from its homography")
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, camera, None, rvec, tvec)
     rotation, _ = cv2.Rodrigues(rvec)
     return ChartPose(rotation, tvec.reshape(3))

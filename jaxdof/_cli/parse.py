@@ -636,7 +636,8 @@ examples:
   jaxdof calibrate photo.tif --chart a4chart.json --focal-length 50mm --sensor-width 36mm
   jaxdof calibrate a.jpg b.jpg c.jpg --chart a4chart.json --json  # a focus bracket
 
-The chart gives the fit its all-in-focus image and depth map: its markers give its pose, its
+The chart gives the fit its all-in-focus image and depth map: its black frame and markers give
+its pose (the frame's edges survive strong defocus; the pose is refined against the photo), its
 texture the blur. The chart must be tilted by 10 degrees or more (a depth range), and every
 photo of one run taken from where the first was (a tripod). From one photo the blur scale and
 the focus distance are measured; the f-number follows from the focal length held.
@@ -647,7 +648,8 @@ def _add_chart(sub) -> None:
     chart = sub.add_parser(
         "chart",
         help="make a calibration chart to print or show on a screen (PNG, PDF, JSON sidecar)",
-        description="Write a calibration chart: ArUco markers around a dead-leaves texture, as "
+        description="Write a calibration chart: a black frame and ArUco markers around a "
+        "dead-leaves texture, as "
         "STEM.png (16-bit), STEM.pdf at its printed size, and STEM.json, the sidecar that "
         "jaxdof calibrate reads.",
         epilog=_EPILOG_CHART,
