@@ -402,7 +402,7 @@ def summary_lines(records, halves) -> list[str]:
 def case_lines(datas) -> list[str]:
     out = [
         "| case | half | chart | distance m | turn (y, x) deg | fov deg (f mm) | A mm | N | "
-        "d_f m | focus | K px | circles on the chart px | chart px | z check (max rel, off px) | "
+        "d_f m | focus | K px | circle radii on the chart px | chart px | z check (max rel, off px) | "
         "clipped |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
