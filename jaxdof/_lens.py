@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+from collections.abc import Iterator
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -169,10 +173,34 @@ def _check_depth(depth: Array, lens: ThinLens) -> None:
             )
 
 
-def _error_if_invalid(depth: Array, lens: ThinLens, *, on_error: str = "default") -> Array:
-    """`depth`, with run-time checks of `depth > focal_length` and of the lens attached
-    (`on_error="nan"`: NaN where they fail, without the host callback that raising needs, so
-    that the program can be kept in the persistent compilation cache).
+# What a traced check does when it fails (`equinox.error_if`'s `on_error`), read at trace time by
+# every traced check (`_error_if_invalid`, the filters' radius check): "default" (equinox's
+# `EQX_ON_ERROR`, raising unless set), or "nan" inside a model that asks for no host callbacks
+# (`DefocusModel.checks`).
+_ON_ERROR: contextvars.ContextVar[str] = contextvars.ContextVar(
+    "jaxdof_on_error", default="default"
+)
+
+
+@contextlib.contextmanager
+def traced_checks(on_error: str) -> Iterator[None]:
+    """Within the block, traced checks do `on_error` (`"default"` or `"nan"`) on failure: `"nan"`
+    needs no host callback, so the program can be kept in the persistent compilation cache."""
+    token = _ON_ERROR.set(on_error)
+    try:
+        yield
+    finally:
+        _ON_ERROR.reset(token)
+
+
+def traced_on_error() -> str:
+    """What a traced check does on failure here (`traced_checks`)."""
+    return _ON_ERROR.get()
+
+
+def _error_if_invalid(depth: Array, lens: ThinLens) -> Array:
+    """`depth`, with run-time checks of `depth > focal_length` and of the lens attached (NaN
+    instead where `traced_checks("nan")` asks).
 
     `equinox.error_if` raises when the compiled computation runs (`EquinoxRuntimeError` under
     `equinox.filter_jit`; `jax.jit` re-raises it as a JAX runtime error with the same message): under `vmap` if any batch element is invalid, under `grad` in the forward
@@ -184,6 +212,7 @@ def _error_if_invalid(depth: Array, lens: ThinLens, *, on_error: str = "default"
     if all(_is_concrete(x) for x in jax.tree_util.tree_leaves((depth, lens))):
         return depth
     bad = ~(depth > lens.focal_length.astype(depth.dtype))
+    on_error = traced_on_error()
     depth = eqx.error_if(depth, bad, _DEPTH_MSG, on_error=on_error)  # pyright: ignore
     return eqx.error_if(depth, ~_lens_is_valid(lens), _LENS_MSG, on_error=on_error)  # pyright: ignore
 

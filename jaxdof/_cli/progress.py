@@ -237,7 +237,8 @@ class FitProgress:
             if lens is None:
                 jax.debug.callback(self._record, *values, ordered=True)
             else:
-                rows = jnp.stack([lens.focal_length, lens.f_number, lens.focus_distance], -1)
+                fields = (lens.focal_length, lens.f_number, lens.focus_distance, lens.pixel_pitch)
+                rows = jnp.stack(fields, -1)  # (T, 4), as `lens_text` reads them
                 jax.debug.callback(self._record, *values, rows, ordered=True)
 
     def watch(self, name: str, seconds: float | None) -> None:
@@ -266,7 +267,7 @@ class FitProgress:
     def _record(self, step, accepted, loss, rows=None) -> None:
         steps, accepted, loss = (np.reshape(np.asarray(x), -1) for x in (step, accepted, loss))
         batched = steps.size > 1  # one call for all starts (a JAX that does not unroll vmap)
-        ys = None if rows is None else np.reshape(np.asarray(rows), (steps.size, -1, 3))
+        ys = None if rows is None else np.reshape(np.asarray(rows), (steps.size, -1, 4))
         for i in range(steps.size):
             start = i if batched else None
             yi = None if ys is None else ys[i]
@@ -309,10 +310,8 @@ class FitProgress:
             self.display.status(text, completed=self._steps, total=self.max_steps, bound=True)
 
     def _lens(self, rows) -> str:
-        """`(T, 3)` rows `(f, N, d_f)` as `lens_text` writes them ("" without)."""
-        if rows is None:
-            return ""
-        return lens_text(np.concatenate([rows, np.zeros_like(rows[:, :1])], 1), self.fields)
+        """`(T, 4)` lens rows as `lens_text` writes them ("" without)."""
+        return "" if rows is None else lens_text(rows, self.fields)
 
     def _summarise(self) -> None:
         """`live`: one line that stays for the solve just done (the steps were on the status)."""

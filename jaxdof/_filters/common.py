@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import math
 import operator
-from collections.abc import Iterator
 
 import equinox as eqx
 import jax
@@ -16,6 +13,7 @@ from jax.core import Tracer
 from jaxtyping import Array, ArrayLike, Float
 
 from .. import _tuning
+from .._lens import traced_on_error
 
 
 #: The image a method and its kernel filter: channels last, `(H, W, C)` (`jaxdof.coc_filter` adds
@@ -81,22 +79,6 @@ def check_max_radius(max_radius, radius) -> float:
     return max_radius
 
 
-# What a traced check does when it fails (`equinox.error_if`'s `on_error`), read at trace time:
-# "default" (equinox's `EQX_ON_ERROR`, raising unless set), or "nan" inside a model that asks
-# for no host callbacks (`DefocusModel.checks`).
-_ON_ERROR: contextvars.ContextVar[str] = contextvars.ContextVar("on_error", default="default")
-
-
-@contextlib.contextmanager
-def traced_checks(on_error: str) -> Iterator[None]:
-    """Within the block, traced radius checks do `on_error` (`"default"` or `"nan"`) on failure."""
-    token = _ON_ERROR.set(on_error)
-    try:
-        yield
-    finally:
-        _ON_ERROR.reset(token)
-
-
 RADIUS_MSG = "radius must be >= 0 pixels everywhere (found a negative or NaN value)"
 
 
@@ -132,7 +114,7 @@ def check_image_and_radius(image, radius) -> tuple[Array, Array, bool]:
         # batch element is bad under vmap; in the forward pass under grad). The returned radius
         # must be used for the check to survive dead-code elimination.
         # `~(r >= 0)`: NaN fails too
-        radius = eqx.error_if(radius, ~(radius >= 0), RADIUS_MSG, on_error=_ON_ERROR.get())  # pyright: ignore
+        radius = eqx.error_if(radius, ~(radius >= 0), RADIUS_MSG, on_error=traced_on_error())  # pyright: ignore
     was_2d = image.ndim == 2
     if was_2d:
         image = image[..., None]

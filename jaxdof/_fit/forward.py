@@ -27,13 +27,13 @@ from jaxtyping import Array, Float
 from .._corrections import FOOTPRINT_REACH, footprint_prefilter
 from .._custom_types import DepthLike, ImageLike
 from .._filters import AbstractMethod, as_method, coc_filter
-from .._filters.common import traced_checks
 from .._lens import (
     ThinLens,
     _abs,
     _check_depth,
     _error_if_invalid,
     _signed_coc_radius_from_power,
+    traced_checks,
 )
 from .._render import _check_downsample, box_downsample
 from .layout import ALL_FIELDS
@@ -186,17 +186,17 @@ class DefocusModel(AbstractForwardModel):
         s = _check_downsample(self.downsample, image.shape)
         method = as_method(self.method)
         _check_depth(depth, lens)  # concrete: ValueError now; traced: checked at run time
-        depth = _error_if_invalid(depth, lens, on_error="default" if self.checks else "nan")
-        radius = _abs(
-            _signed_coc_radius_from_power(
-                depth, lens.focal_length, lens.f_number, lens.focus_power, lens.pixel_pitch
-            )
-        ).astype(jnp.result_type(image.dtype, depth.dtype))
-        # From here on as `jaxdof.render`: circles and window in the input's pixels.
-        radius, window = radius * s, max_radius * s
-        if self.footprint:
-            image = footprint_prefilter(image, jnp.minimum(radius, window))
-        with traced_checks("default" if self.checks else "nan"):
+        with traced_checks("default" if self.checks else "nan"):  # this call's traced checks
+            depth = _error_if_invalid(depth, lens)
+            radius = _abs(
+                _signed_coc_radius_from_power(
+                    depth, lens.focal_length, lens.f_number, lens.focus_power, lens.pixel_pitch
+                )
+            ).astype(jnp.result_type(image.dtype, depth.dtype))
+            # From here on as `jaxdof.render`: circles and window in the input's pixels.
+            radius, window = radius * s, max_radius * s
+            if self.footprint:
+                image = footprint_prefilter(image, jnp.minimum(radius, window))
             out = coc_filter(
                 image,
                 radius,
