@@ -44,6 +44,7 @@ import jax
 jax.config.update("jax_enable_x64", True)  # as the modules below; main() sets the run's precision
 
 import numpy as np  # noqa: E402
+from _captures_scenes import verdict  # noqa: E402  (the capture study's verdicts)
 from _chart_scenes import (  # noqa: E402
     CACHE,
     CASES,
@@ -199,16 +200,6 @@ def record(cal, data) -> dict:
         pixels_used=int(res.pixels_used),
         **pose_error(cal, data),
     )
-
-
-def verdict(rec) -> str:
-    if "exception" in rec:
-        return "raised"
-    if rec["within"]:
-        return "within"
-    if not rec["success"]:
-        return "flagged"
-    return "silent" if rec["silent"] else "covered"
 
 
 def calibrate_case(data, which: str) -> dict:
