@@ -180,7 +180,7 @@ def make_chart(
         raise ValueError(f"{dictionary} has {n_ids} markers, the layout needs {len(places)}")
     ids = sorted(int(i) for i in rng.choice(n_ids, size=len(places), replace=False))
     codes = _dead_leaves(rng, nx, ny)
-    white, black = (_code(v) for v in (HIGH, LOW))
+    white, black = (encode(v) for v in (HIGH, LOW))
     if margin:
         codes[:margin], codes[-margin:], codes[:, :margin], codes[:, -margin:] = (white,) * 4
     codes[margin:outer, margin : nx - margin] = white
@@ -261,8 +261,8 @@ def _cv2():
     return cv2
 
 
-def _code(reflectance):
-    """16-bit sRGB codes of linear reflectances."""
+def encode(reflectance):
+    """16-bit sRGB codes of linear reflectances (`decode`'s inverse on its codes)."""
     from .._io import linear_to_srgb
 
     return np.round(linear_to_srgb(reflectance) * 65535).astype(np.uint16)
@@ -314,7 +314,7 @@ def _dead_leaves(rng: np.random.Generator, nx: int, ny: int) -> np.ndarray:
         if left == 0:
             return codes
         radius = (a - rng.uniform(size=batch) * (a - b)) ** -0.5
-        grey = _code(rng.uniform(LOW, HIGH, size=batch))
+        grey = encode(rng.uniform(LOW, HIGH, size=batch))
         if left > (1 - _COVERED) * nx * ny:
             centre = rng.uniform(0, 1, size=(batch, 2)) * (nx, ny)
         else:  # the last gaps: discs centred in them (uncovered pixels in raster order)

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 from jaxtyping import Float
 
-from .._io import atomic_write, linear_to_srgb
-from ._design import Chart, decode, remember
+from .._io import atomic_write
+from ._design import Chart, decode, encode, remember
 
 
 _FORMAT = "jaxdof-chart"
@@ -60,7 +60,7 @@ def write_chart(
             raise ValueError(f"{', '.join(there)} exists; pass overwrite=True to replace it")
     if not paths[0].parent.is_dir():
         raise ValueError(f"{stem}: folder {paths[0].parent} does not exist")
-    codes = np.round(linear_to_srgb(image) * 65535).astype(np.uint16)
+    codes = encode(image)
     png = _png_bytes(codes)
     _write(paths[0], png)
     if not chart.monitor:
