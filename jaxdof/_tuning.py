@@ -386,6 +386,13 @@ SELECT_ALPHA = 1e-3
 #: command line reads a JPEG's subsampling from its header instead.
 LUMA_CHROMA = 0.5
 
+#: The standard error (photo pixels) of the chart's corners as `jaxdof.detect_chart` places them:
+#: the largest corner error over the 16 ray-traced chart photos of `fits/chart.py` (8 poses and
+#: lenses, circles of 0-11 px, linear and 8-bit JPEG; median 0.18 px, largest 0.52 px). It sizes
+#: the uncertainty of the focal length in pixels found from the homographies
+#: (`_chart._geometry.focal_stderr`), which scales the chart's depth and so the focus distance.
+CHART_CORNER_PX = 0.5
+
 _NAMES = (
     "SPANS_MIN_RADIUS",
     "JITTER_SPANS_MIN_RADIUS",
@@ -404,6 +411,7 @@ _NAMES = (
     "CLI_MEMORY",
     "FIT_MEMORY",
     "LUMA_CHROMA",
+    "CHART_CORNER_PX",
 )
 
 

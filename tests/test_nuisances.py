@@ -188,6 +188,24 @@ def test_vignetting_is_fitted_where_the_corners_are_dark():
     np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
 
 
+def test_illumination_is_fitted_where_light_falls_from_one_side():
+    """A photo lit 30 % brighter on the right than the left (`1 + 0.25 u`, `u` over the half
+    diagonal), 0.5 % noise: the illumination is fitted, its `c_x` within 0.03 of 0.25 and `c_y`
+    of 0, the lens within 1 %."""
+    image, depth = _scene(48, 64)
+    clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5, 64)))
+    lit = _camera(clean, ("illumination",), illumination_x=0.25)
+    fit = jaxdof.fit_lens(image, depth, _noisy(lit, 0.005), _lens(4.0, 2.0, 64))
+    entry = fit.nuisances["illumination"]
+    assert entry["fitted"] and entry["chosen"], fit.nuisances
+    assert bool(fit.success), fit.message
+    v = entry["values"]
+    np.testing.assert_allclose(v["illumination_x"][0], 0.25, atol=0.03)
+    np.testing.assert_allclose(v["illumination_y"][0], 0.0, atol=0.03)
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
+
+
 def test_vignetting_and_registration_forced():
     """`vignetting=False, registration=False` never fit them; `=True` always does (forced)."""
     image, depth = _scene()
@@ -219,7 +237,7 @@ def test_nuisance_columns_are_the_derivatives_of_the_model_with_the_nuisance():
     args0 = (image, depth, targets, sqrt_w, layout._Spec(free, (), 1).layout(base, depth))
     model0 = residual._Model(1, 4.0, (), jaxdof.DefocusModel(), n_live=2)
     got = nuisance_columns(model0, model0.pack(jnp.asarray(base), args0[-1]), args0)
-    every = ("exposure", "vignetting", "registration")
+    every = ("exposure", "vignetting", "illumination", "registration")
     spec = layout._Spec(free, (), 1, every)
     lay = spec.layout(base, depth)
     model = residual._Model(1, 4.0, every, jaxdof.DefocusModel(), n_live=len(spec.used))
@@ -232,7 +250,7 @@ def test_nuisance_columns_are_the_derivatives_of_the_model_with_the_nuisance():
 
 
 def test_residual_gradients_with_every_nuisance_and_luma():
-    """The residual with exposure, vignetting, registration and the luma comparison: float64
+    """The residual with exposure, vignetting, illumination, registration and the luma comparison: float64
     finite differences of its derivatives in every coordinate, forward and reverse, away from
     the null values (a shift of 0.3 px, 1 % magnification)."""
     image, depth = (x.astype(np.float64) for x in _scene(12, 14))
@@ -242,7 +260,7 @@ def test_residual_gradients_with_every_nuisance_and_luma():
         image, depth, target, lens, None, jaxdof.DefocusModel()
     )
     targets, sqrt_w = prepare.luma_targets(targets, sqrt_w)
-    every = ("exposure", "vignetting", "registration")
+    every = ("exposure", "vignetting", "illumination", "registration")
     spec = layout._Spec(("f_number", "focus_distance"), (), 1, every, luma=True)
     lay = spec.layout(base, depth)
     model = residual._Model(1, 4.0, every, jaxdof.DefocusModel(), len(spec.used), luma=True)
@@ -250,7 +268,7 @@ def test_residual_gradients_with_every_nuisance_and_luma():
     off = np.asarray(base).copy()
     off[:, 1] *= 1.2
     r = photo.half_diagonal(12, 14)
-    extra = jnp.asarray([0.95, 0.01, -0.1, 0.02, 0.3 / r, -0.2 / r, 0.01])
+    extra = jnp.asarray([0.95, 0.01, -0.1, 0.02, 0.15, -0.1, 0.3 / r, -0.2 / r, 0.01])
     y = model.pack(jnp.asarray(off), lay).at[3:].set(extra)
     # A step of 1e-6: the resampling kernel is C1 where a source position crosses a pixel (its
     # taps change there), so finite differences of the default step see its second derivative's
@@ -317,3 +335,7 @@ def test_the_cause_of_an_inconsistency_is_named_from_the_residual_pattern():
     exact = 1 + 20 * rho2
     exact[3, 3] = 0.0  # the centre, where the pattern puts the least
     assert "vignetting" in _cause(exact, flat)
+    # Light falling from one side: after the exposure's mean, the residual grows towards the
+    # left and right sides alike.
+    sides = 1 + 20 * np.add.outer(0 * c, c**2)
+    assert "illumination=True" in _cause(sides, flat)

@@ -9,9 +9,11 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Float
 
+from .. import _tuning
 from .._exif import ExifLens
 from .._fit import FitResult, fit_lens
 from .._lens import ThinLens
@@ -24,6 +26,7 @@ from ._geometry import (
     chart_pose,
     chart_scene,
     focal_from_homographies,
+    focal_stderr,
     refine_focal,
 )
 
@@ -47,6 +50,8 @@ class ChartCalibration:
     - `poses`: the chart's pose in each photo (`ChartPose`; `tilt` in degrees).
     - `camera`: the intrinsic matrix `K` (pixels) used.
     - `focal_px`: its focal length (pixels): the lens-to-sensor distance over the pixel pitch.
+    - `focal_px_stderr`: its standard error (pixels) where found from the homographies (from
+      corners placed to `_tuning.CHART_CORNER_PX`), else 0 (taken as given).
     - `intrinsics`: where `focal_px` came from: `"focal length and pixel pitch"` or
       `"homographies"`.
     - `init`: the starting lens (one per photo).
@@ -58,6 +63,7 @@ class ChartCalibration:
     poses: tuple[ChartPose, ...]
     camera: Float[np.ndarray, "3 3"]
     focal_px: float
+    focal_px_stderr: float
     intrinsics: str
     init: tuple[ThinLens, ...]
     depth_range: tuple[float, float]
@@ -73,6 +79,7 @@ class ChartCalibration:
         correlation it was refined at, the tilt and the pose; the intrinsics."""
         return {
             "focal_px": self.focal_px,
+            "focal_px_stderr": self.focal_px_stderr,
             "intrinsics": self.intrinsics,
             "depth_range": list(self.depth_range),
             "photos": [
@@ -122,8 +129,9 @@ def calibrate(
     - `init`: the starting lens (one, or one per photo); default from the values above.
     - `views`: the chart as already found in each photo (`detect_chart`); default: found here.
     - `fit_options`: passed to `jaxdof.fit_lens` (`free`, `shared`, `verbose`, the nuisances,
-      ...): its defaults otherwise, so exposure, vignetting, registration and luma are decided
-      from the photos.
+      ...): its defaults otherwise, so vignetting, illumination, registration and luma are
+      decided from the photos; the exposure (gain and offset) is fitted by default, as the
+      chart's raster is on no scale of the photo's.
 
     **Returns:** a `ChartCalibration`: the `FitResult` and what the chart told.
 
@@ -137,7 +145,10 @@ def calibrate(
     EXIF's focal length, f-number and focus distance where recorded, else focus at the chart's
     median depth, f/4, and `f = 1 / (1 / s + 1 / d)` from `s = f_px p`. Only the blur scale
     (`ThinLens.blur_scale`) and the focus distance are measured from one photo; the f-number
-    follows from the focal length held.
+    follows from the focal length held. The chart's depth scales with `f_px` and the blur
+    cannot tell (it depends on the depths over the focus distance), so where `f_px` comes from
+    the homographies the focus distance's standard error includes its relative error
+    (`ChartCalibration.focal_px_stderr`).
 
     **Raises:** `ChartError` (a `ValueError`, one line) when a photo does not show the chart
     usably (`detect_chart`), the chart faces the camera within 10 degrees (too little depth
@@ -171,6 +182,7 @@ def calibrate(
     )
     if f is not None and pixel_pitch is not None:
         f_px, source = _focal_px(found[0], f, pixel_pitch, focus), "focal length and pixel pitch"
+        f_px_se = 0.0
     else:
         f_px = focal_from_homographies([v.homography for v in found], shape)
         if f_px is None:
@@ -181,6 +193,7 @@ def calibrate(
             )
         f_px = refine_focal(found, f_px)
         source = "homographies"
+        f_px_se = focal_stderr(found, _tuning.CHART_CORNER_PX)
     if pixel_pitch is None and f is None and init is None:
         raise ChartError(
             "the pixel pitch is unknown (no EXIF focal-plane resolution or 35 mm equivalent): "
@@ -201,16 +214,37 @@ def calibrate(
         sharp = np.repeat(sharp[..., None], shape[2], axis=-1)
     targets = photos[0] if n == 1 else np.stack(photos)
     start = list(inits) if n > 1 else inits[0]
+    # The chart's raster holds reflectances (or a monitor's levels), on no scale of the photo's
+    # exposure: the gain and offset are always fitted, unless the caller says otherwise.
+    fit_options = {"exposure": True, **fit_options}
     fit = fit_lens(sharp, depth, targets, start, **fit_options)
     return ChartCalibration(
-        fit=fit,
+        fit=_with_scale_error(fit, f_px_se / f_px),
         views=tuple(found),
         poses=tuple(poses),
         camera=camera,
         focal_px=float(f_px),
+        focal_px_stderr=float(f_px_se),
         intrinsics=source,
         init=inits,
         depth_range=(near, far),
+    )
+
+
+def _with_scale_error(fit: FitResult, rel: float) -> FitResult:
+    """`fit` with the focus distance's standard error (and its power's) widened by a relative
+    error `rel` of the chart's depth: the depth map scales with the focal length in pixels, and
+    the blur, which depends on the ratio of the depths to the focus distance, cannot tell; the
+    covariance stays the fit's."""
+    if rel == 0 or "focus_distance" not in fit.stderr:
+        return fit
+    se0, power0 = jnp.asarray(fit.stderr["focus_distance"]), jnp.asarray(fit.focus_power_stderr)
+    d = jnp.ravel(jnp.asarray(fit.lenses.focus_distance))
+    d = (d if d.size == se0.size else d[:1]).reshape(se0.shape)  # one per photo, or shared
+    se = jnp.hypot(se0, rel * d)
+    power = jnp.hypot(power0, rel / d.reshape(power0.shape))
+    return dataclasses.replace(
+        fit, stderr={**fit.stderr, "focus_distance": se}, focus_power_stderr=power
     )
 
 

@@ -26,6 +26,7 @@ import jaxdof
 from .. import _tuning
 from .._allocator import _glibc, retain_freed_memory
 from .._exif import ExifLens, read_exif
+from .._fit.photo import NUISANCES
 from .._fit.solve import watch_stages
 from .._fit.tiles import SIDE, estimate_fit_memory, use_tiles
 from .._io import (
@@ -525,7 +526,7 @@ def fit_call(args, display: Display | None = None) -> FitCall:
         edge_weight=args.edge_weight,
         verbose=verbose,
         luma=_luma(args),
-        **{k: _choice(getattr(args, k)) for k in ("exposure", "vignetting", "registration")},
+        **{k: _choice(getattr(args, k)) for k in NUISANCES},
         **model,
     )
     return FitCall(img.array, depth, targets, init, kwargs, model, exif, progress)
@@ -843,8 +844,9 @@ def run_calibrate(args) -> int:
                 f"chart at {entry['distance_m']:.3g} m"
             )
         near, far = cal.depth_range
+        pm = f" +- {cal.focal_px_stderr:.1f}" if cal.focal_px_stderr > 0 else ""
         print(
-            f"camera: focal length {cal.focal_px:.1f} px (from the {cal.intrinsics}), chart "
+            f"camera: focal length {cal.focal_px:.1f}{pm} px (from the {cal.intrinsics}), chart "
             f"depths {near:.3g}-{far:.3g} m"
         )
     pixels = len(photos) * int(np.prod(shape[:2]))

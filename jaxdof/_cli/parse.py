@@ -472,6 +472,7 @@ def _add_fit_pixels(fit) -> None:
     for name, what in (
         ("exposure", "a gain and offset per TARGET"),
         ("vignetting", "a radial gain 1 + a r^2 + b r^4 per TARGET"),
+        ("illumination", "a gain tilted across the frame 1 + c_x u + c_y v per TARGET"),
         ("registration", "a shift and magnification (focus breathing) per TARGET"),
     ):
         fit.add_argument(

@@ -181,7 +181,7 @@ _STAGES = {
     "fit_starts": "solving",
     "restate": "restating the lens at focus infinity",
     "finish": "standard errors and the adequacy test",
-    "nuisance scores": "testing for exposure, vignetting and registration",
+    "nuisance scores": "testing for exposure, vignetting, illumination and registration",
     "rank at init": "checking the data's rank at the start",
 }
 

@@ -599,7 +599,7 @@ _ALIKE = 2.0
 def _cause(cells: np.ndarray, p) -> str:
     """The likely cause of a fit's inconsistency, from where its residual is large
     (`solve.residual_map`, mean squared residual per cell of the photo): growing towards the
-    corners (vignetting, uneven illumination), along depth edges (occlusion the model does not
+    corners (vignetting) or towards two sides (light falling unevenly), along depth edges (occlusion the model does not
     render), or everywhere alike (the aperture's shape, the photo's encoding, noise or a lens
     the model does not know)."""
     ok = np.isfinite(cells)
@@ -623,16 +623,26 @@ def _cause(cells: np.ndarray, p) -> str:
         return float(np.corrcoef(a, b)[0, 1])
 
     radial, edgy = corr(rho2), corr(edge_share)
+    # A gain tilted across the frame leaves, after the exposure's mean, a residual growing
+    # towards two opposite sides: along one axis rather than towards every corner.
+    sideways = max(
+        corr(np.add.outer(0 * centre, centre**2)), corr(np.add.outer(centre**2, 0 * centre))
+    )
     spread = float(np.nanmax(cells) / max(float(np.nanmedian(cells)), np.finfo(float).tiny))
     if edgy > _PATTERN and edgy >= radial:
         return (
             f"the residual is largest along depth edges (correlation {edgy:.2f}): likely "
             "occlusion the model renders differently (method=jaxdof.LocalOcclusion())"
         )
+    if sideways > _PATTERN and sideways > radial:
+        return (
+            f"the residual grows towards two sides of the frame (correlation {sideways:.2f}): "
+            "likely light that falls unevenly across the scene (illumination=True)"
+        )
     if radial > _PATTERN:
         return (
             f"the residual grows towards the corners (correlation {radial:.2f}): likely "
-            "vignetting or uneven illumination (vignetting=True)"
+            "vignetting (vignetting=True) or uneven illumination (illumination=True)"
         )
     if spread < _ALIKE:
         return (
@@ -781,6 +791,7 @@ def fit_lens(
     allow_degenerate: bool = False,
     exposure: bool | None = None,
     vignetting: bool | None = None,
+    illumination: bool | None = None,
     registration: bool | None = None,
     luma: bool | None = None,
     starts: int | None = None,
@@ -801,7 +812,8 @@ def fit_lens(
     $$\sum_t \sum_p w_p \left( E\big(g_t V_t(p)\, W_t[\mathrm{model}(I, Z, \mathrm{lens}_t)]_p
       + o_t\big) - T_{t,p} \right)^2$$
 
-    (linear light; `model` is `jaxdof.render` by default; `g, o` exposure, `V` vignetting, `W`
+    (linear light; `model` is `jaxdof.render` by default; `g, o` exposure, `V` vignetting and
+    illumination, `W`
     registration, `E` the luma encoding, each the identity unless fitted) with an optimistix
     least-squares solver from a few starts, in coordinates in which focus at infinity is the
     ordinary point 0 (`log N`, a logit of `f`, the focus power in diopters scaled to the scene).
@@ -829,11 +841,12 @@ def fit_lens(
       refits with a larger one if the solution's circles outgrow it.
     - `allow_degenerate`: return a fit whose free fields the data cannot all determine
       (`success=False`, `inf` standard errors) instead of raising.
-    - `exposure`, `vignetting`, `registration`: a gain and offset; a radial gain
-      `1 + a rho^2 + b rho^4`; a shift and magnification (focus breathing), per target.
+    - `exposure`, `vignetting`, `illumination`, `registration`: a gain and offset; a radial
+      gain `1 + a rho^2 + b rho^4`; a gain tilted across the frame `1 + c_x u + c_y v` (a chart
+      lit from one side); a shift and magnification (focus breathing), per target.
       `None` (default): fitted where a score test at the fit without it rejects and fitting it
       explains more than the model's error (`select.with_nuisances`); `True`/`False` force it.
-      Vignetting and registration need the whole frame (`tiles=None`).
+      Vignetting, illumination and registration need the whole frame (`tiles=None`).
     - `luma`: compare colour photos in their sRGB luma (a camera JPEG's colour is stored at half
       resolution); `None` decides from the photo's colour detail.
     - `starts`: the number of starts (default 4 with a free focus, else 3): `init`, then focus
@@ -874,7 +887,12 @@ def fit_lens(
     Fits of many independent scenes: `jaxdof.solve_lens` under `jax.vmap`.
     """
     call = dict(locals())
-    asked = {"exposure": exposure, "vignetting": vignetting, "registration": registration}
+    asked = {
+        "exposure": exposure,
+        "vignetting": vignetting,
+        "illumination": illumination,
+        "registration": registration,
+    }
     for name, value in (*asked.items(), ("luma", luma)):
         if value not in (None, True, False):
             raise ValueError(f"{name} must be None (decide from the photo), True or False")
@@ -939,6 +957,10 @@ def _photo_says(result: FitResult, call: dict, rounding: float) -> FitResult:
     return result
 
 
+# An image whose chroma holds under this share of its luma's detail (`chroma_detail`) is grey.
+_GREY_CHROMA = 1e-6
+
+
 def _choose_luma(image, targets, luma: bool | None) -> tuple[bool, dict]:
     """Whether to compare the photos in their sRGB luma, and the decision's record: the caller's
     `luma`, else where a colour photo has lost the colour detail of the all-in-focus image (its
@@ -953,7 +975,10 @@ def _choose_luma(image, targets, luma: bool | None) -> tuple[bool, dict]:
     detail = math.nan
     if colour and luma is None:
         of_image = chroma_detail(np.asarray(image))
-        detail = min(chroma_detail(a) for a in arr) / of_image if of_image > 0 else math.nan
+        # A grey image (a chart's raster in three channels) has no colour detail to lose: its
+        # ratio is rounding over rounding, and says nothing.
+        grey = not of_image > _GREY_CHROMA
+        detail = math.nan if grey else min(chroma_detail(a) for a in arr) / of_image
     if luma is not None:
         return bool(luma), {"fitted": bool(luma), "forced": True, "chroma_detail": detail}
     on = bool(colour and detail < _tuning.LUMA_CHROMA)

@@ -2,7 +2,7 @@ r"""What the camera does to the render before it is a photo: the nuisances and t
 
 A fit compares photo `t` with
 
-$$P_t(x) = E\Big(g_t\,V_t(x)\,\big[\mathcal{W}_t\,\mathrm{render}_t\big](x) + o_t\Big),$$
+$$P_t(x) = E\Big(g_t\,V_t(x)\,L_t(x)\,\big[\mathcal{W}_t\,\mathrm{render}_t\big](x) + o_t\Big),$$
 
 each part the identity at its null value, and each fitted only where the photo needs it
 (`select.with_nuisances`):
@@ -13,6 +13,10 @@ each part the identity at its null value, and each fitted only where the photo n
   `V_t = 1 + a_t rho^2 + b_t rho^4`, `rho` the distance from the frame's centre over its half
   diagonal (1 in the corners), low order as natural `cos^4` falloff is
   (`1 - 2 tan^2 + 3 tan^4 ...`); with the gain, `V_t(0) = 1`;
+- **illumination** (`illumination_x`, `illumination_y` `c_t`, 0): a gain that tilts across the
+  frame, `L_t = 1 + c_x u + c_y v` (`u, v` from the frame's centre over its half diagonal): a
+  chart lit from one side (the all-in-focus image of a chart is its raster, evenly lit), or a
+  light that changed between the shots;
 - **registration** (`shift_x`, `shift_y`, `magnification` `m_t`, 0): photo pixel `x` sees the
   render at `c + (x - c - s_t) / (1 + m_t)` (`c` the frame's centre): a tripod that moved a
   fraction of a pixel, and focus breathing (a focus change scales the image). Shifts are in
@@ -41,6 +45,7 @@ from jaxtyping import Array, Float
 NUISANCES: dict[str, tuple[str, ...]] = {
     "exposure": ("gain", "offset"),
     "vignetting": ("vignetting_r2", "vignetting_r4"),
+    "illumination": ("illumination_x", "illumination_y"),
     "registration": ("shift_x", "shift_y", "magnification"),
 }
 #: Each parameter's null value (the camera adds nothing).
@@ -53,7 +58,7 @@ _LUMA = (0.299, 0.587, 0.114)
 
 
 # The nuisances that depend on where a pixel is in the whole frame: not fitted on tiles.
-FRAMED = frozenset({"vignetting", "registration"})
+FRAMED = frozenset({"vignetting", "illumination", "registration"})
 
 
 def canonical(nuisances) -> tuple[str, ...]:
@@ -129,6 +134,12 @@ def vignette(h: int, w: int, a2, a4, dtype) -> Float[Array, "h w 1"]:
     return (1 + a2 * rho2 + a4 * rho2 * rho2)[..., None]
 
 
+def illuminate(h: int, w: int, cx, cy, dtype) -> Float[Array, "h w 1"]:
+    """The tilted gain `1 + cx u + cy v` (`u, v` over the half diagonal, 0 at the centre)."""
+    v, u, _ = frame(h, w, dtype)
+    return (1 + cx * u[None, :] + cy * v[:, None])[..., None]
+
+
 def srgb_encode(x: Array) -> Array:
     """The sRGB transfer curve (IEC 61966-2-1), extended linearly below 0 and by its power law
     above 1; its derivative is finite everywhere."""
@@ -164,6 +175,8 @@ def camera(
             img = register(img, p["shift_x"], p["shift_y"], p["magnification"])
         if "vignetting" in nuisances:
             img = img * vignette(h, w, p["vignetting_r2"], p["vignetting_r4"], img.dtype)
+        if "illumination" in nuisances:
+            img = img * illuminate(h, w, p["illumination_x"], p["illumination_y"], img.dtype)
         if "exposure" in nuisances:
             img = p["gain"] * img + p["offset"]
         return img

@@ -603,6 +603,7 @@ def solve_lens(
     weight: ArrayLike | None = None,
     exposure: bool = False,
     vignetting: bool = False,
+    illumination: bool = False,
     registration: bool = False,
     luma: bool = False,
     model: AbstractForwardModel | None = None,
@@ -617,7 +618,7 @@ def solve_lens(
     `jax.jit(jax.vmap(lambda im, z, t: solve_lens(im, z, t, init, max_radius=8.0)))`. Arguments
     are as in `fit_lens` (`model`, or the default model's `method`, `footprint`, `downsample`),
     except that `max_radius` (pixels) is required and static, only `init` is tried (no
-    multi-start), the nuisances (`exposure`, `vignetting`, `registration`) and `luma` are
+    multi-start), the nuisances (`exposure`, `vignetting`, `illumination`, `registration`) and `luma` are
     fitted as given (`False` by default: no score test, no selection; a registration's reach
     is not added to the band), and nothing is raised: read `.status` / `.success` (per scene under `vmap`; a
     degenerate free set gives `status == jaxdof.RESULTS.degenerate`, circles all under half a
@@ -646,7 +647,12 @@ def solve_lens(
         band, mask = 0, border_mask(targets.shape[1:3], 0)
     mask = mask[None, :, :, None] if targets.ndim == 4 else mask[None]
     sqrt_w = sqrt_w * jnp.asarray(mask, sqrt_w.dtype)
-    on = {"exposure": exposure, "vignetting": vignetting, "registration": registration}
+    on = {
+        "exposure": exposure,
+        "vignetting": vignetting,
+        "illumination": illumination,
+        "registration": registration,
+    }
     spec = _Spec(free, shared, targets.shape[0], canonical(k for k, v in on.items() if v), luma)
     if spec.luma:
         targets, sqrt_w = luma_targets(targets, sqrt_w)
