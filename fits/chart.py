@@ -18,6 +18,7 @@ Run (Mitsuba only to render what is not cached yet; about 12 s per photo):
 
     python fits/chart.py                      # every case, both inputs
     python fits/chart.py --cases print_front  # a subset (tag _partial)
+    python fits/chart.py --inputs jpeg        # the JPEGs only (tag _partial)
     python fits/chart.py --render-only        # make the photos, fit nothing
 
 Renders are cached in `fits/.cache/chart/`, fits in `fits/.cache/chart/fits/<fingerprint>/`
@@ -540,7 +541,8 @@ def main(args) -> None:
     folder = CACHE / "fits" / fp
     records = []
     raised = set()  # the cases whose JPEG calibrate refused: no chart found
-    for which in (*INPUTS, GIVEN):  # every JPEG first: the study's main input
+    inputs = tuple(args.inputs or INPUTS)
+    for which in (*inputs, GIVEN):  # every JPEG first: the study's main input
         for data in datas:
             path = folder / f"{data.case.name}__{which}.json"
             if (args.from_cache and not path.exists()) or (
@@ -602,7 +604,8 @@ def main(args) -> None:
     for half, hn in halves.items():
         lines += [f"## Fits, {half} half", "", *fit_rows(records, hn)]
     lines += cli_lines(cli)
-    tag = ("" if args.cases is None else "_partial") + args.tag
+    partial = args.cases is not None or set(inputs) != set(INPUTS)
+    tag = ("_partial" if partial else "") + args.tag
     write_markdown(result_path("chart", tag=tag), lines)
     raw = dict(command=cmd, conditions=conds, records=records, diagnosis=diags, cli=cli)
     save_json(result_path("chart", "_raw.json", tag=tag), finite(raw), indent=1)
@@ -616,6 +619,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", choices=[c.name for c in CASES], metavar="CASE")
     ap.add_argument("--render-only", action="store_true", help="render the photos, fit nothing")
+    ap.add_argument(
+        "--inputs", nargs="+", choices=INPUTS, help="the photos to fit (default: both)"
+    )
     ap.add_argument(
         "--from-cache",
         metavar="FINGERPRINT",

@@ -2,12 +2,13 @@
 that the photo has (issue 34: "its detection has a measured false-alarm rate").
 
 Question: with the default call `fit_lens(image, depth, photo, init)`, on noisy renders of a
-scene, how often is each nuisance (`exposure`, `vignetting`, `registration`) fitted
+scene, how often is each nuisance (`exposure`, `vignetting`, `illumination`, `registration`) fitted
 
 - **false alarm**: photos rendered without any (only Gaussian noise): the share of fits that fit
   each one;
 - **power**: photos with one of them (exposure x 0.85; vignetting `1 - 0.25 rho^2`, 25 % darker
-  in the corners; a shift of (0.4, -0.6) px and a 1 % magnification, resampled with
+  in the corners; illumination `1 + 0.25 u`, `u` across the frame over its half diagonal, 30 %
+  brighter on the right than the left; a shift of (0.4, -0.6) px and a 1 % magnification, resampled with
   `scipy.ndimage.map_coordinates`, quintic splines, an interpolant the fit does not use): the
   share that fit it, and the lens error.
 
@@ -34,7 +35,7 @@ from select_rate import _lens, _scene  # the same scene and lenses
 import jaxdof
 
 
-NUISANCES = ("exposure", "vignetting", "registration")
+NUISANCES = ("exposure", "vignetting", "illumination", "registration")
 
 
 def spoil(clean: np.ndarray, what: str) -> np.ndarray:
@@ -47,6 +48,8 @@ def spoil(clean: np.ndarray, what: str) -> np.ndarray:
         return 0.85 * clean
     if what == "vignetting":
         return clean * (1 - 0.25 * rho2)[..., None]
+    if what == "illumination":
+        return clean * (1 + 0.25 * u / np.sqrt(0.25 * (h * h + w * w)))[..., None]
     if what == "registration":
         m, sx, sy = 0.01, 0.4, -0.6
         rows = (np.arange(h)[:, None] + 0.5 - h / 2 - sy) / (1 + m) + h / 2 - 0.5
@@ -116,9 +119,9 @@ def main(argv=None) -> None:
         f"- jaxdof source: {git_state()}",
         "",
         "| noise (share of mean) | photo has | exposure fitted | vignetting fitted | "
-        "registration fitted | success | silent (success, error over 3 se) | median abs N error | median abs d_f error | "
+        "illumination fitted | registration fitted | success | silent (success, error over 3 se) | median abs N error | median abs d_f error | "
         "median s per fit |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for noise in args.noise:
         for what in ("none", *NUISANCES):

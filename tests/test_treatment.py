@@ -255,6 +255,29 @@ def test_depth_holes_scattered_over_the_frame_leave_a_quarter():
     np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.02)
 
 
+def test_a_large_hole_keeps_its_full_reach():
+    """Depth only on a patch of the frame (a chart: the rest is holes): the photo pixels within
+    the circles' reach of the patch's outline are left out at the full reach, since the share
+    kept is of the pixels with depth, not of the whole frame."""
+    from jaxdof._fit import prepare
+
+    rng = np.random.default_rng(1)
+    image = rng.uniform(0.05, 1, (48, 64)).astype(np.float32)
+    depth = np.full((48, 64), np.nan, np.float32)
+    depth[12:36, 16:48] = np.linspace(1.5, 3.0, 32, dtype=np.float32)[None]
+    start = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.0, sensor_width=0.0048, image_width=64)
+    p = prepare.prepare_problem(
+        image, depth, image, start, None, jaxdof.DefocusModel(), ("f_number",), (), (), False
+    )
+    out, left_out, reach = prepare.leave_out_holes(p, 3.0)
+    assert reach == 3.0
+    inside = np.zeros((48, 64), bool)
+    inside[15:33, 19:45] = True  # the patch less 3 px along its outline
+    kept = np.asarray(out.sqrt_w)[0] > 0
+    np.testing.assert_array_equal(kept & ~inside, np.zeros_like(kept))
+    assert kept[inside].all()
+
+
 @pytest.mark.parametrize("n", [8, 24, 64, 200])
 def test_depth_edges_are_jumps_not_slopes(n):
     """`depth_edges` (issue 33): no edge on a ramp of any steepness (linear in depth, or a plane:

@@ -206,7 +206,7 @@ def luma_targets(targets, sqrt_w):
     return y, jnp.min(sqrt_w, axis=-1, keepdims=True)
 
 
-# The share of the fitted photo pixels that the pixels near depth holes may take at most; beyond
+# The share of the fitted photo pixels with depth that must stay out of a hole's reach; short of
 # it the reach is halved until it holds (`leave_out_holes`).
 _HOLES_KEEP = 0.25
 
@@ -215,7 +215,7 @@ def leave_out_holes(p: Problem, reach: float) -> tuple[Problem, int, float]:
     """`p` with zero weight at the photo pixels within `reach` photo pixels (a circle and the
     render's stencils) of a depth hole, how many photo pixels that left out, and the reach used.
 
-    Where that would leave under `_HOLES_KEEP` of the fitted pixels (holes scattered over a
+    Where that would leave under `_HOLES_KEEP` of the fitted pixels with depth (holes scattered over a
     whole small frame), the reach is halved until it does not (the filled depth is a smooth
     continuation of its neighbours, so the nearest pixels matter most). Raises `ValueError`
     only when the holes themselves cover every fitted photo pixel."""
@@ -223,10 +223,12 @@ def leave_out_holes(p: Problem, reach: float) -> tuple[Problem, int, float]:
         return p, 0, reach
     w = p.sqrt_w
     fitted = np.any(w > 0, axis=(0, 3)) if w.ndim == 4 else np.any(w > 0, axis=0)
+    # The share is of the pixels with depth: a chart fills a fifth of its photo, the rest holes.
+    with_depth = int(np.sum(fitted & ~near_holes(p.holes, 0.0, p.ratio)))
     while True:
         near = near_holes(p.holes, reach * p.ratio, p.ratio)
         left = int(np.sum(fitted & ~near))
-        if left >= _HOLES_KEEP * int(np.sum(fitted)) or (reach <= 0 and left > 0):
+        if left >= _HOLES_KEEP * with_depth or (reach <= 0 and left > 0):
             break
         if reach <= 0:
             raise ValueError(
