@@ -528,6 +528,11 @@ def main(args) -> None:
     git = git_state()
     if args.from_cache:
         git = f"the checkout now: {git}; the fits were made earlier, by the library of {fp}"
+    if not args.no_compile_cache:
+        # As the command line does: the photos share their shape, so their programs are shared
+        # (the first fit compiles, the rest load; the seconds reported are a user's with a warm
+        # cache after the first).
+        jaxdof.enable_compilation_cache(path=CACHE / "xla")
     names = args.cases or [c.name for c in CASES]
     datas = [case_photo(c) for c in CASES if c.name in names]
     render_secs = {d.case.name: d.render_seconds for d in datas}
@@ -619,15 +624,18 @@ def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", nargs="+", choices=[c.name for c in CASES], metavar="CASE")
     ap.add_argument("--render-only", action="store_true", help="render the photos, fit nothing")
-    ap.add_argument(
-        "--inputs", nargs="+", choices=INPUTS, help="the photos to fit (default: both)"
-    )
+    ap.add_argument("--inputs", nargs="+", choices=INPUTS, help="the photos to fit (default: both)")
     ap.add_argument(
         "--from-cache",
         metavar="FINGERPRINT",
         help="report the fits cached under this fingerprint, fitting nothing",
     )
     ap.add_argument("--no-cli", action="store_true", help="skip timing the CLI")
+    ap.add_argument(
+        "--no-compile-cache",
+        action="store_true",
+        help="compile every fit's programs (default: a persistent cache beside the renders)",
+    )
     ap.add_argument("--tag", default="", help="suffix of the report's names")
     ap.add_argument("--note", default="", help="a line for the report's conditions")
     return ap.parse_args(argv)

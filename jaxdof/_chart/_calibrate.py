@@ -129,9 +129,9 @@ def calibrate(
     - `init`: the starting lens (one, or one per photo); default from the values above.
     - `views`: the chart as already found in each photo (`detect_chart`); default: found here.
     - `fit_options`: passed to `jaxdof.fit_lens` (`free`, `shared`, `verbose`, the nuisances,
-      ...): its defaults otherwise, so vignetting, illumination, registration and luma are
-      decided from the photos; the exposure (gain and offset) is fitted by default, as the
-      chart's raster is on no scale of the photo's.
+      ...): its defaults otherwise, so vignetting, registration and luma are decided from the
+      photos; the exposure (gain and offset) and the illumination (its tilt across the frame)
+      are fitted by default, as the chart's raster says nothing of the light on it.
 
     **Returns:** a `ChartCalibration`: the `FitResult` and what the chart told.
 
@@ -214,9 +214,12 @@ def calibrate(
         sharp = np.repeat(sharp[..., None], shape[2], axis=-1)
     targets = photos[0] if n == 1 else np.stack(photos)
     start = list(inits) if n > 1 else inits[0]
-    # The chart's raster holds reflectances (or a monitor's levels), on no scale of the photo's
-    # exposure: the gain and offset are always fitted, unless the caller says otherwise.
-    fit_options = {"exposure": True, **fit_options}
+    # The chart's raster holds reflectances (or a monitor's levels): the light on it, its level
+    # and how it falls across the chart, is on no scale of the photo's. The exposure and the
+    # illumination are fitted unless the caller says otherwise (without the illumination, a
+    # ray-traced print lit from one side came back with K 62 % off, and its fit and the
+    # selection's refits crawled for minutes towards that lens).
+    fit_options = {"exposure": True, "illumination": True, **fit_options}
     fit = fit_lens(sharp, depth, targets, start, **fit_options)
     return ChartCalibration(
         fit=_with_scale_error(fit, f_px_se / f_px),

@@ -236,13 +236,8 @@ def with_nuisances(
         on = tuple(k for k in asked if entries[k].get("fitted") or k == pick)
         failed = _status(result) == "other"
         # From the lens found; where the fit without it failed (a misregistration can drive it
-        # into a flat region), from the caller's starts. A lens that the model without the
-        # nuisance could not explain the photo with (not `successful`) may sit in a basin the
-        # model with it does not have (a chart lit from one side, fitted without the light's
-        # tilt: K 62 % off, and the refit from there stayed): its starts spread from it.
-        start = {} if failed else {"init": result.lenses, "pyramid": None}
-        if _status(result) == "successful":
-            start["starts"] = 1
+        # into a flat region), from the caller's starts.
+        start = {} if failed else {"init": result.lenses, "starts": 1, "pyramid": None}
         try:
             refit = fit(**{**call, **_as_chosen(result, call), **start, "nuisances": on})
         except ValueError:
