@@ -191,12 +191,13 @@ def test_vignetting_is_fitted_where_the_corners_are_dark():
 def test_illumination_is_fitted_where_light_falls_from_one_side():
     """A photo lit 30 % brighter on the right than the left (`1 + 0.25 u`, `u` over the half
     diagonal), 0.5 % noise: the illumination is fitted, its `c_x` within 0.03 of 0.25 and `c_y`
-    of 0, the lens within 1 %. The other nuisances are held off (each has its own test), which
-    keeps the selection to this one."""
+    of 0, the lens within 1 %. The other nuisances and the treatment are held (each has its own
+    tests), which keeps the selection to this one: 34 s instead of 152 s."""
     image, depth = _scene(48, 64)
     clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5, 64)))
     lit = _camera(clean, ("illumination",), illumination_x=0.25)
-    others = dict(exposure=False, vignetting=False, registration=False)
+    others = dict(exposure=False, vignetting=False, registration=False, footprint=False)
+    others["method"] = "soft"
     fit = jaxdof.fit_lens(image, depth, _noisy(lit, 0.005), _lens(4.0, 2.0, 64), **others)
     entry = fit.nuisances["illumination"]
     assert entry["fitted"] and entry["chosen"], fit.nuisances
