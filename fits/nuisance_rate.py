@@ -2,15 +2,16 @@
 that the photo has (issue 34: "its detection has a measured false-alarm rate").
 
 Question: with the default call `fit_lens(image, depth, photo, init)`, on noisy renders of a
-scene, how often is each nuisance (`exposure`, `vignetting`, `illumination`, `registration`) fitted
+scene, how often is each nuisance (`exposure`, `vignetting`, `illumination`, `registration`)
+fitted
 
 - **false alarm**: photos rendered without any (only Gaussian noise): the share of fits that fit
   each one;
 - **power**: photos with one of them (exposure x 0.85; vignetting `1 - 0.25 rho^2`, 25 % darker
   in the corners; illumination `1 + 0.25 u`, `u` across the frame over its half diagonal, 30 %
-  brighter on the right than the left; a shift of (0.4, -0.6) px and a 1 % magnification, resampled with
-  `scipy.ndimage.map_coordinates`, quintic splines, an interpolant the fit does not use): the
-  share that fit it, and the lens error.
+  brighter on the right than the left; a shift of (0.4, -0.6) px and a 1 % magnification,
+  resampled with `scipy.ndimage.map_coordinates`, quintic splines, an interpolant the fit does
+  not use): the share that fit it, and the lens error.
 
 Scene: a 40 x 56 random texture over a depth ramp 1-5 m (the tests' round-trip scene, as
 `select_rate.py`), 50 mm on a 4.8 mm sensor, f/2.8 focused at 2.5 m (circles 0.7-2.7 px); start

@@ -196,8 +196,8 @@ def test_illumination_is_fitted_where_light_falls_from_one_side():
     image, depth = _scene(48, 64)
     clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5, 64)))
     lit = _camera(clean, ("illumination",), illumination_x=0.25)
-    others = dict(exposure=False, vignetting=False, registration=False, footprint=False)
-    others["method"] = "soft"
+    others = dict(exposure=False, vignetting=False, registration=False)
+    others.update(footprint=False, method="soft")
     fit = jaxdof.fit_lens(image, depth, _noisy(lit, 0.005), _lens(4.0, 2.0, 64), **others)
     entry = fit.nuisances["illumination"]
     assert entry["fitted"] and entry["chosen"], fit.nuisances
@@ -253,9 +253,9 @@ def test_nuisance_columns_are_the_derivatives_of_the_model_with_the_nuisance():
 
 
 def test_residual_gradients_with_every_nuisance_and_luma():
-    """The residual with exposure, vignetting, illumination, registration and the luma comparison: float64
-    finite differences of its derivatives in every coordinate, forward and reverse, away from
-    the null values (a shift of 0.3 px, 1 % magnification)."""
+    """The residual with exposure, vignetting, illumination, registration and the luma
+    comparison: float64 finite differences of its derivatives in every coordinate, forward and
+    reverse, away from the null values (a shift of 0.3 px, 1 % magnification)."""
     image, depth = (x.astype(np.float64) for x in _scene(12, 14))
     lens = _lens(2.8, 2.5, 14)
     target = 0.9 * np.asarray(jaxdof.render(image, depth, lens)) + 0.02
@@ -340,5 +340,5 @@ def test_the_cause_of_an_inconsistency_is_named_from_the_residual_pattern():
     assert "vignetting" in _cause(exact, flat)
     # Light falling from one side: after the exposure's mean, the residual grows towards the
     # left and right sides alike.
-    sides = 1 + 20 * np.add.outer(0 * c, c**2)
+    sides = 1 + 20 * np.broadcast_to(c**2, (n, n))
     assert "illumination=True" in _cause(sides, flat)

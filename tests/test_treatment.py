@@ -274,6 +274,7 @@ def test_a_large_hole_keeps_its_full_reach():
     inside = np.zeros((48, 64), bool)
     inside[15:33, 19:45] = True  # the patch less 3 px along its outline
     kept = np.asarray(out.sqrt_w)[0] > 0
+    assert left_out == int((~kept).sum())  # every pixel was fitted before
     np.testing.assert_array_equal(kept & ~inside, np.zeros_like(kept))
     assert kept[inside].all()
 

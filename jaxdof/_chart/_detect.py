@@ -14,7 +14,7 @@ from scipy import ndimage
 
 from .._io import linear_to_srgb, srgb_to_linear
 from ._design import _QUIET, Chart, _cv2, raster_of
-from ._geometry import ChartError
+from ._geometry import ChartError, _hom4
 
 
 # Dictionaries tried when none of the chart's is found, to say which one the photo shows.
@@ -84,10 +84,15 @@ class ChartView:
         return int(self.ids.size)
 
     @property
+    def outline_m(self) -> Float[np.ndarray, "4 2"]:
+        """The chart's corners on the chart (m), clockwise from its top-left."""
+        w, h = self.size_m
+        return np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
+
+    @property
     def outline(self) -> Float[np.ndarray, "4 2"]:
         """The chart's corners in the photo (pixels), clockwise from its top-left."""
-        w, h = self.size_m
-        return _project(self.homography, np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
+        return _project(self.homography, self.outline_m)
 
     def grid(self, n: int = 5) -> tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 2"]]:
         """`(points, pixels)`: an `n x n` grid over the chart (m) and its image by the
@@ -336,14 +341,6 @@ def _from_outline(light, grey, chart, raster, points, corners):
 def _max_distance(hom, points, corners) -> float:
     """The largest distance (pixels) between `corners` and the image of `points` by `hom`."""
     return float(np.abs(_project(hom, points.reshape(-1, 2)) - corners.reshape(-1, 2)).max())
-
-
-def _hom4(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """The homography of 4 point pairs (`(4, 2)` each), float64."""
-    cv2 = _cv2()
-    return cv2.getPerspectiveTransform(src.astype(np.float32), dst.astype(np.float32)).astype(
-        np.float64
-    )
 
 
 def _quads(grey: np.ndarray) -> list[np.ndarray]:

@@ -90,34 +90,33 @@ def focal_from_homographies(homographies: list[np.ndarray], shape: tuple[int, ..
     return None if not omega > 0 else w / math.sqrt(omega)
 
 
+def _hom4(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """The homography of 4 point pairs (`(4, 2)` each), float64."""
+    import cv2
+
+    return cv2.getPerspectiveTransform(src.astype(np.float32), dst.astype(np.float32)).astype(
+        np.float64
+    )
+
+
 def focal_stderr(views, sigma_px: float) -> float:
     """The standard error (pixels) of `focal_from_homographies` over `views`, were each corner of
     each chart's outline in the photo off by independent errors of `sigma_px` in each
     coordinate: `sigma_px` times the norm of the focal length's derivatives in the corners
     (central differences). `inf` where the focal length is undetermined."""
-    import cv2
-
-    def hom4(src, dst):
-        return cv2.getPerspectiveTransform(src.astype(np.float32), dst.astype(np.float32))
-
-    outlines = [v.outline for v in views]
     homs = [v.homography for v in views]
     shape = views[0].shape
-    f0 = focal_from_homographies(homs, shape)
-    if f0 is None:
+    if focal_from_homographies(homs, shape) is None:
         return math.inf
     step, grad2 = 0.01, 0.0
-    for k, (view, out) in enumerate(zip(views, outlines)):
-        w, h = view.size_m
-        chart = np.array([[0, 0], [w, 0], [w, h], [0, h]], float)
+    for k, view in enumerate(views):
         for i in range(8):
             ends = []
             for sign in (1, -1):
-                moved = out.copy()
+                moved = view.outline.copy()
                 moved.flat[i] += sign * step
-                f = focal_from_homographies(
-                    [*homs[:k], hom4(chart, moved).astype(np.float64), *homs[k + 1 :]], shape
-                )
+                hom = _hom4(view.outline_m, moved)
+                f = focal_from_homographies([*homs[:k], hom, *homs[k + 1 :]], shape)
                 ends.append(math.inf if f is None else f)
             grad2 += ((ends[0] - ends[1]) / (2 * step)) ** 2
     return sigma_px * math.sqrt(grad2) if math.isfinite(grad2) else math.inf

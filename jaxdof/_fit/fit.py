@@ -599,8 +599,8 @@ _ALIKE = 2.0
 def _cause(cells: np.ndarray, p) -> str:
     """The likely cause of a fit's inconsistency, from where its residual is large
     (`solve.residual_map`, mean squared residual per cell of the photo): growing towards the
-    corners (vignetting) or towards two sides (light falling unevenly), along depth edges (occlusion the model does not
-    render), or everywhere alike (the aperture's shape, the photo's encoding, noise or a lens
+    corners (vignetting) or towards two sides (light falling unevenly), along depth edges
+    (occlusion the model does not render), or everywhere alike (the aperture's shape, the photo's encoding, noise or a lens
     the model does not know)."""
     ok = np.isfinite(cells)
     if ok.sum() < 4:
@@ -625,9 +625,8 @@ def _cause(cells: np.ndarray, p) -> str:
     radial, edgy = corr(rho2), corr(edge_share)
     # A gain tilted across the frame leaves, after the exposure's mean, a residual growing
     # towards two opposite sides: along one axis rather than towards every corner.
-    sideways = max(
-        corr(np.add.outer(0 * centre, centre**2)), corr(np.add.outer(centre**2, 0 * centre))
-    )
+    across = np.broadcast_to(centre**2, (n, n))  # grows towards the left and right sides
+    sideways = max(corr(across), corr(across.T))
     spread = float(np.nanmax(cells) / max(float(np.nanmedian(cells)), np.finfo(float).tiny))
     if edgy > _PATTERN and edgy >= radial:
         return (
@@ -809,13 +808,12 @@ def fit_lens(
 
     Minimises, over the `free` lens fields (and the camera's nuisances where fitted),
 
-    $$\sum_t \sum_p w_p \left( E\big(g_t V_t(p)\, W_t[\mathrm{model}(I, Z, \mathrm{lens}_t)]_p
-      + o_t\big) - T_{t,p} \right)^2$$
+    $$\sum_t \sum_p w_p \left( E\big(g_t V_t(p) L_t(p)\, W_t[\mathrm{model}(I, Z,
+      \mathrm{lens}_t)]_p + o_t\big) - T_{t,p} \right)^2$$
 
-    (linear light; `model` is `jaxdof.render` by default; `g, o` exposure, `V` vignetting and
-    illumination, `W`
-    registration, `E` the luma encoding, each the identity unless fitted) with an optimistix
-    least-squares solver from a few starts, in coordinates in which focus at infinity is the
+    (linear light; `model` is `jaxdof.render` by default; `g, o` exposure, `V` vignetting, `L`
+    illumination, `W` registration, `E` the luma encoding, each the identity unless fitted) with
+    an optimistix least-squares solver from a few starts, in coordinates in which focus at infinity is the
     ordinary point 0 (`log N`, a logit of `f`, the focus power in diopters scaled to the scene).
     The photo pixels within a circle's reach of the frame's edge, which hold light from outside
     the frame, are left out (`border`).

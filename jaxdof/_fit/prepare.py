@@ -215,8 +215,8 @@ def leave_out_holes(p: Problem, reach: float) -> tuple[Problem, int, float]:
     """`p` with zero weight at the photo pixels within `reach` photo pixels (a circle and the
     render's stencils) of a depth hole, how many photo pixels that left out, and the reach used.
 
-    Where that would leave under `_HOLES_KEEP` of the fitted pixels with depth (holes scattered over a
-    whole small frame), the reach is halved until it does not (the filled depth is a smooth
+    Where that would leave under `_HOLES_KEEP` of the fitted pixels with depth (holes scattered
+    over a whole small frame), the reach is halved until it does not (the filled depth is a smooth
     continuation of its neighbours, so the nearest pixels matter most). Raises `ValueError`
     only when the holes themselves cover every fitted photo pixel."""
     if p.holes is None:

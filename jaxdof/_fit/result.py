@@ -280,8 +280,8 @@ class FitResult(eqx.Module):
       weight, footprint, border; a `jaxdof.Treatment`, `str()` says it in words); `None` from
       `solve_lens`, which models what it is given.
     - `nuisances`: what `fit_lens` decided about what the camera adds (`"exposure"`,
-      `"vignetting"`, `"illumination"`, `"registration"`, per photo): `{"fitted", "forced", "chosen", "score",
-      "dof", "p_value", "explains"}`: the score test at the fit without it and, where that
+      `"vignetting"`, `"illumination"`, `"registration"`, per photo): `{"fitted", "forced",
+      "chosen", "score", "dof", "p_value", "explains"}`: the score test at the fit without it and, where that
       rejected, by how much fitting it lowered the chi-square in units of the model's error
       (`select.explained`; `chosen`: kept), and `"values"` where fitted (shifts in photo
       pixels); and `"luma"`: whether the photos were compared in their

@@ -618,8 +618,8 @@ def solve_lens(
     `jax.jit(jax.vmap(lambda im, z, t: solve_lens(im, z, t, init, max_radius=8.0)))`. Arguments
     are as in `fit_lens` (`model`, or the default model's `method`, `footprint`, `downsample`),
     except that `max_radius` (pixels) is required and static, only `init` is tried (no
-    multi-start), the nuisances (`exposure`, `vignetting`, `illumination`, `registration`) and `luma` are
-    fitted as given (`False` by default: no score test, no selection; a registration's reach
+    multi-start), the nuisances (`exposure`, `vignetting`, `illumination`, `registration`) and
+    `luma` are fitted as given (`False` by default: no score test, no selection; a registration's reach
     is not added to the band), and nothing is raised: read `.status` / `.success` (per scene under `vmap`; a
     degenerate free set gives `status == jaxdof.RESULTS.degenerate`, circles all under half a
     pixel `jaxdof.RESULTS.dead_zone`). Circles above `max_radius` are clamped and not detected
