@@ -517,8 +517,9 @@ class _Template:
         out = self._warped[1].copy()
         # blurred over the chart's box only: nothing outside it is compared
         r = int(math.ceil(coc / 2)) + 2
-        box = _box(_project(hom, self.chart.corners), r, self.shape)
-        x0, y0, x1, y1 = _box(_project(hom, self.chart.corners), 2 * r, self.shape)
+        seen = _project(hom, self.chart.corners)
+        box = _box(seen, r, self.shape)
+        x0, y0, x1, y1 = _box(seen, 2 * r, self.shape)
         part = cv2.filter2D(out[y0:y1, x0:x1], -1, _disc(coc), borderType=cv2.BORDER_REPLICATE)
         out[box[1] : box[3], box[0] : box[2]] = part[
             box[1] - y0 : box[3] - y0, box[0] - x0 : box[2] - x0
