@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jaxdof
-from jaxdof._chart._geometry import _footprint, camera_matrix, focal_from_homographies
+from jaxdof._chart._geometry import _footprint, camera_matrix, chart_pose, focal_from_homographies
 
 
 SHAPE = (240, 320)
@@ -406,6 +406,49 @@ def test_refinement_converges(wide_chart):
     assert coc == pytest.approx(8.0, rel=0.15) and corr > 0.95
 
 
+def test_align_with_the_lens_blur(chart, tilted):
+    """A photo from `jaxdof.render` (f/1.4 focused at 0.55 m: circles 0-3.7 px across the chart)
+    and a homography whose corners are 0.4-0.6 px off: aligned with the lens's render of the
+    chart, each pixel blurred by its own circle, the corners come within 0.1 px of the truth and
+    the focal length in pixels from the homography within 1 %."""
+    import cv2
+
+    from jaxdof._chart._align import align_view, usable_pixels
+
+    c, raster = chart
+    pose, camera, scene = tilted
+    lens = _lens(1.4, 0.55)
+    photo = _photo(scene, lens, noise=0.002)
+    truth = pose.homography(camera)
+    seen = np.column_stack([c.corners, np.ones(4)]) @ truth.T
+    off = np.array([[0.5, -0.3], [-0.4, -0.5], [0.3, 0.5], [-0.5, 0.4]])
+    start = cv2.getPerspectiveTransform(
+        c.corners.astype(np.float32), (seen[:, :2] / seen[:, 2:] + off).astype(np.float32)
+    ).astype(np.float64)
+    view = jaxdof.ChartView(
+        np.zeros(0, int),
+        np.zeros((0, 4, 2)),
+        np.zeros((0, 4, 2)),
+        start,
+        0.0,
+        0,
+        SHAPE,
+        0.5,
+        size_m=(c.width_m, c.height_m),
+    )
+    at = chart_pose(*view.grid(), camera)
+    sharp, depth = jaxdof.chart_scene(c, raster, at, camera, SHAPE)
+    template = np.asarray(jaxdof.render(sharp, depth, lens, fill_holes=True))
+    reach = float(np.nanmax(np.asarray(jaxdof.coc_radius(jaxdof.fill_depth_holes(depth), lens))))
+    at_h = at.homography(camera)
+    aligned, moved = align_view(photo, view, template, at_h, usable_pixels(depth, reach))
+    assert _outline_error(view, truth, c.corners) > 0.5
+    assert _outline_error(aligned, truth, c.corners) < 0.1
+    assert 0.4 < moved < 0.8
+    f_px = focal_from_homographies([aligned.homography], SHAPE)
+    assert f_px == pytest.approx(F_PX, rel=0.01)
+
+
 @pytest.mark.parametrize("f_number, focus", [(16.0, 0.45), (2.0, 0.5), (1.4, 0.55)])
 def test_detect_blurred(chart, tilted, f_number, focus):
     """Photos from `jaxdof.render` (circles up to 0.2, 2.2 and 3.7 px here; cells of 7 px): by
@@ -532,5 +575,6 @@ def test_calibrate_end_to_end(chart, tilted):
     assert abs(d_f - 0.5) < 3 * se
     assert float(cal.lens.blur_scale) == pytest.approx(float(truth.blur_scale), rel=0.05)
     out = cal.to_dict()
+    assert len(out["aligned_px"]) == 1 and out["aligned_px"][0] < 1.0
     assert out["photos"][0]["markers"] == cal.views[0].markers
     assert 30 < out["photos"][0]["tilt_deg"] < 45

@@ -9,6 +9,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Float
@@ -16,7 +17,9 @@ from jaxtyping import Float
 from .. import _tuning
 from .._exif import ExifLens
 from .._fit import FitResult, fit_lens
-from .._lens import ThinLens
+from .._lens import ThinLens, coc_radius
+from .._render import render
+from ._align import align_view, usable_pixels
 from ._design import Chart
 from ._detect import ChartView, detect_chart
 from ._geometry import (
@@ -37,6 +40,7 @@ _MIN_TILT = 10.0  # degrees: a chart closer to facing the camera gives too littl
 # chart's extent in the photo.
 _SAME_PX, _SAME_SHARE = 2.0, 0.01
 _F_NUMBER = 4.0  # the starting f-number when EXIF has none
+_GIVEN = "focal length and pixel pitch"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +60,8 @@ class ChartCalibration:
       `"homographies"`.
     - `init`: the starting lens (one per photo).
     - `depth_range`: the chart's nearest and farthest z-depth (m) in the first photo.
+    - `aligned_px`: per photo, how far (pixels) the chart's corners moved when it was aligned
+      again with the first fit's blur (`calibrate`'s `align`); empty where it was not.
     """
 
     fit: FitResult
@@ -67,6 +73,7 @@ class ChartCalibration:
     intrinsics: str
     init: tuple[ThinLens, ...]
     depth_range: tuple[float, float]
+    aligned_px: tuple[float, ...] = ()
 
     @property
     def lens(self) -> ThinLens:
@@ -82,6 +89,7 @@ class ChartCalibration:
             "focal_px_stderr": self.focal_px_stderr,
             "intrinsics": self.intrinsics,
             "depth_range": list(self.depth_range),
+            "aligned_px": list(self.aligned_px),
             "photos": [
                 {
                     "markers": v.markers,
@@ -112,6 +120,7 @@ def calibrate(
     exif: ExifLens | Sequence[ExifLens | None] | None = None,
     init: ThinLens | Sequence[ThinLens] | None = None,
     views: Sequence[ChartView] | None = None,
+    align: bool = True,
     **fit_options,
 ) -> ChartCalibration:
     r"""Calibrate a lens from photos of a chart (`make_chart`): the chart gives the fit its
@@ -128,6 +137,8 @@ def calibrate(
       focus distance and pixel pitch where recorded.
     - `init`: the starting lens (one, or one per photo); default from the values above.
     - `views`: the chart as already found in each photo (`detect_chart`); default: found here.
+    - `align`: find the chart again in each photo with the first fit's blur and fit again
+      (default); `False`: one fit, with the chart where `detect_chart` put it.
     - `fit_options`: passed to `jaxdof.fit_lens` (`free`, `shared`, `verbose`, the nuisances,
       ...): its defaults otherwise, so vignetting, registration and luma are decided from the
       photos; the exposure (gain and offset) and the illumination (its tilt across the frame)
@@ -148,7 +159,10 @@ def calibrate(
     follows from the focal length held. The chart's depth scales with `f_px` and the blur
     cannot tell (it depends on the depths over the focus distance), so where `f_px` comes from
     the homographies the focus distance's standard error includes its relative error
-    (`ChartCalibration.focal_px_stderr`).
+    (`ChartCalibration.focal_px_stderr`). `detect_chart` aligns the chart blurred by one disc;
+    with `align`, each photo's chart is aligned again with the fitted lens's render of it,
+    each pixel blurred by its own circle (`align_view`: the corners to about 0.1 px), and the
+    camera, the poses, the scene and the fit follow.
 
     **Raises:** `ChartError` (a `ValueError`, one line) when a photo does not show the chart
     usably (`detect_chart`), the chart faces the camera within 10 degrees (too little depth
@@ -180,58 +194,111 @@ def calibrate(
     focus = (
         focus if focus is not None and math.isfinite(focus) and (f is None or focus > f) else None
     )
-    if f is not None and pixel_pitch is not None:
-        f_px, source = _focal_px(found[0], f, pixel_pitch, focus), "focal length and pixel pitch"
-        f_px_se = 0.0
-    else:
-        f_px = focal_from_homographies([v.homography for v in found], shape)
-        if f_px is None:
-            raise ChartError(
-                "the chart faces the camera too squarely to give the focal length in pixels: "
-                f"tilt it by {_MIN_TILT:.0f} degrees or more, or give the focal length and the "
-                "pixel pitch"
-            )
-        f_px = refine_focal(found, f_px)
-        source = "homographies"
-        f_px_se = focal_stderr(found, _tuning.CHART_CORNER_PX)
-    if pixel_pitch is None and f is None and init is None:
-        raise ChartError(
-            "the pixel pitch is unknown (no EXIF focal-plane resolution or 35 mm equivalent): "
-            "give the sensor width or the focal length"
-        )
-    camera = camera_matrix(f_px, shape)
-    poses = [chart_pose(*v.grid(), camera) for v in found]
-    tilt = min(p.tilt for p in poses)
-    if tilt < _MIN_TILT:
-        raise ChartError(_facing(tilt))
-    sharp, depth = chart_scene(chart, image, poses[0], camera, shape)
-    near, far = float(np.nanmin(depth)), float(np.nanmax(depth))
-    median = float(np.nanmedian(depth))
-    if init is None:
-        init = [_start(e or ExifLens(), f, pixel_pitch, f_px, median) for e in exifs]
-    inits = tuple(init) if isinstance(init, Sequence) else (init,) * n
-    if photos[0].ndim == 3:
-        sharp = np.repeat(sharp[..., None], shape[2], axis=-1)
-    targets = photos[0] if n == 1 else np.stack(photos)
-    start = list(inits) if n > 1 else inits[0]
     # The chart's raster holds reflectances (or a monitor's levels): the light on it, its level
     # and how it falls across the chart, is on no scale of the photo's. The exposure and the
     # illumination are fitted unless the caller says otherwise (without the illumination, a
     # ray-traced print lit from one side came back with K 62 % off, and its fit and the
     # selection's refits crawled for minutes towards that lens).
     fit_options = {"exposure": True, "illumination": True, **fit_options}
-    fit = fit_lens(sharp, depth, targets, start, **fit_options)
+    geometry = _Geometry.of(found, f, pixel_pitch, focus)
+    if pixel_pitch is None and f is None and init is None:
+        raise ChartError(
+            "the pixel pitch is unknown (no EXIF focal-plane resolution or 35 mm equivalent): "
+            "give the sensor width or the focal length"
+        )
+    sharp, depth = geometry.scene(chart, image, photos[0])
+    median = float(np.nanmedian(depth))
+    if init is None:
+        init = [_start(e or ExifLens(), f, pixel_pitch, geometry.f_px, median) for e in exifs]
+    inits = tuple(init) if isinstance(init, Sequence) else (init,) * n
+    targets = photos[0] if n == 1 else np.stack(photos)
+    fit = fit_lens(sharp, depth, targets, list(inits) if n > 1 else inits[0], **fit_options)
+    moved: tuple[float, ...] = ()
+    if align:
+        # The chart found again with each photo's fitted blur (`align_view`), and the lens
+        # fitted again from the first fit's, its focus distance moved with the chart's depth.
+        aligned = [
+            _aligned(p, v, geometry, chart, image, fit, k)
+            for k, (p, v) in enumerate(zip(photos, found))
+        ]
+        found, moved = [a[0] for a in aligned], tuple(a[1] for a in aligned)
+        geometry = _Geometry.of(found, f, pixel_pitch, focus)
+        sharp, depth = geometry.scene(chart, image, photos[0])
+        scale = float(np.nanmedian(depth)) / median
+        lenses = [_lens_at(fit, k, scale) for k in range(n)]
+        fit = fit_lens(sharp, depth, targets, lenses if n > 1 else lenses[0], **fit_options)
     return ChartCalibration(
-        fit=_with_scale_error(fit, f_px_se / f_px),
+        fit=_with_scale_error(fit, geometry.f_px_se / geometry.f_px),
         views=tuple(found),
-        poses=tuple(poses),
-        camera=camera,
-        focal_px=float(f_px),
-        focal_px_stderr=float(f_px_se),
-        intrinsics=source,
+        poses=tuple(geometry.poses),
+        camera=geometry.camera,
+        focal_px=float(geometry.f_px),
+        focal_px_stderr=float(geometry.f_px_se),
+        intrinsics=geometry.source,
         init=inits,
-        depth_range=(near, far),
+        depth_range=(float(np.nanmin(depth)), float(np.nanmax(depth))),
+        aligned_px=moved,
     )
+
+
+@dataclasses.dataclass(frozen=True)
+class _Geometry:
+    """The camera and the chart's poses from the views: the focal length in pixels `f_px`
+    (from `f` and the pitch, else the homographies, with its standard error `f_px_se`), the
+    intrinsic matrix and each view's pose."""
+
+    f_px: float
+    f_px_se: float
+    source: str
+    camera: np.ndarray
+    poses: list[ChartPose]
+
+    @classmethod
+    def of(cls, views: Sequence[ChartView], f, pitch, focus) -> _Geometry:
+        shape = views[0].shape
+        if f is not None and pitch is not None:
+            f_px, source, f_px_se = _focal_px(views[0], f, pitch, focus), _GIVEN, 0.0
+        else:
+            f_px = focal_from_homographies([v.homography for v in views], shape)
+            if f_px is None:
+                raise ChartError(
+                    "the chart faces the camera too squarely to give the focal length in "
+                    f"pixels: tilt it by {_MIN_TILT:.0f} degrees or more, or give the focal "
+                    "length and the pixel pitch"
+                )
+            f_px, source = refine_focal(views, f_px), "homographies"
+            f_px_se = focal_stderr(views, _tuning.CHART_CORNER_PX)
+        camera = camera_matrix(f_px, shape)
+        poses = [chart_pose(*v.grid(), camera) for v in views]
+        tilt = min(p.tilt for p in poses)
+        if tilt < _MIN_TILT:
+            raise ChartError(_facing(tilt))
+        return cls(f_px, f_px_se, source, camera, poses)
+
+    def scene(self, chart: Chart, image, photo: np.ndarray, k: int = 0):
+        """`chart_scene` of view `k`, its image in as many channels as `photo` has."""
+        sharp, depth = chart_scene(chart, image, self.poses[k], self.camera, photo.shape)
+        if photo.ndim == 3:
+            sharp = np.repeat(sharp[..., None], photo.shape[2], axis=-1)
+        return sharp, depth
+
+
+def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: int):
+    """`align_view` of photo `k` with the chart as `fit`'s lens for it renders it."""
+    sharp, depth = chart_scene(chart, image, geometry.poses[k], geometry.camera, photo.shape)
+    lens = jax.tree_util.tree_map(lambda x: x[k], fit.lenses)
+    template = np.asarray(render(sharp, depth, lens, fill_holes=True))
+    on = np.isfinite(depth)
+    reach = float(np.max(np.asarray(coc_radius(np.where(on, depth, np.nanmedian(depth)), lens))))
+    at = geometry.poses[k].homography(geometry.camera)
+    return align_view(photo, view, template, at, usable_pixels(depth, reach))
+
+
+def _lens_at(fit: FitResult, k: int, scale: float) -> ThinLens:
+    """Photo `k`'s fitted lens with its focus distance scaled by `scale` (the chart's depth
+    moved so): the blur, which depends on depth over focus distance, stays."""
+    lens = jax.tree_util.tree_map(lambda x: float(x[k]), fit.lenses)
+    return ThinLens(lens.focal_length, lens.f_number, lens.focus_distance * scale, lens.pixel_pitch)
 
 
 def _with_scale_error(fit: FitResult, rel: float) -> FitResult:
