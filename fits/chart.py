@@ -158,6 +158,7 @@ def pose_error(cal, data) -> dict:
             focal_px_err=float(cal.focal_px) / f_px(data.case) - 1,
             intrinsics=str(getattr(cal, "intrinsics", "")),
             markers=int(cal.views[0].markers),
+            aligned_px=[float(m) for m in getattr(cal, "aligned_px", ())],
         )
     except Exception as err:  # a calibration without a readable pose is itself a finding
         return dict(pose_unreadable=f"{type(err).__name__}: {err}"[:200])
