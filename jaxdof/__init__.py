@@ -1,4 +1,4 @@
-import importlib.metadata
+import importlib.metadata as _metadata
 
 from ._allocator import retain_freed_memory as retain_freed_memory
 from ._batch import (
@@ -67,6 +67,6 @@ from ._upsample import upsample_depth as upsample_depth
 
 
 try:
-    __version__ = importlib.metadata.version("jaxdof")
-except importlib.metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = _metadata.version("jaxdof")
+except _metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0"

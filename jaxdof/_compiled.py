@@ -3,9 +3,9 @@
 Every XLA:CPU executable holds a few memory mappings of the process (its code and data sections)
 for as long as a jit cache keeps it. A process that compiles thousands of programs (a test worker,
 a study of many scenes and lenses) reaches the kernel's limit, `vm.max_map_count` (65530 by
-default), and dies inside the compiler: LLVM's "Cannot allocate memory", or a segfault. Measured
-(session 15): 300 compiles add ~1400 mappings and `jax.clear_caches()` returns them all, equinox's
-`filter_jit` caches included; a slow-test worker segfaulted with ~41,500 mappings seen beside it.
+default), and dies inside the compiler: LLVM's "Cannot allocate memory", or a segfault. 300
+compiles add about 1400 mappings and `jax.clear_caches()` returns them all, equinox's
+`filter_jit` caches included; a slow-test worker segfaulted with about 41,500 mappings.
 
 And compiled code that a process keeps: `enable_compilation_cache`, JAX's persistent cache, so
 that a second run of the same shapes loads its programs instead of compiling them.
