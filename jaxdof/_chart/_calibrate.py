@@ -184,16 +184,7 @@ def calibrate(
         list(views) if views is not None else [detect_chart(p, chart, image=image) for p in photos]
     )
     _one_scene(found)
-    first = exifs[0] or ExifLens()
-    h, w = shape[:2]
-    f = focal_length if focal_length is not None else first.focal_length
-    if pixel_pitch is None:
-        width = first.sensor_width(w, h)
-        pixel_pitch = None if width is None else width / w
-    focus = first.focus_distance
-    focus = (
-        focus if focus is not None and math.isfinite(focus) and (f is None or focus > f) else None
-    )
+    f, pixel_pitch, focus = _camera(exifs[0] or ExifLens(), shape, focal_length, pixel_pitch)
     # The chart's raster holds reflectances (or a monitor's levels): the light on it, its level
     # and how it falls across the chart, is on no scale of the photo's. The exposure and the
     # illumination are fitted unless the caller says otherwise (without the illumination, a
@@ -215,18 +206,17 @@ def calibrate(
     fit = fit_lens(sharp, depth, targets, list(inits) if n > 1 else inits[0], **fit_options)
     moved: tuple[float, ...] = ()
     if align:
-        # The chart found again with each photo's fitted blur (`align_view`), and the lens
-        # fitted again from the first fit's, its focus distance moved with the chart's depth.
-        aligned = [
-            _aligned(p, v, geometry, chart, image, fit, k)
-            for k, (p, v) in enumerate(zip(photos, found))
-        ]
-        found, moved = [a[0] for a in aligned], tuple(a[1] for a in aligned)
-        geometry = _Geometry.of(found, f, pixel_pitch, focus)
-        sharp, depth = geometry.scene(chart, image, photos[0])
-        scale = float(np.nanmedian(depth)) / median
-        lenses = [_lens_at(fit, k, scale) for k in range(n)]
-        fit = fit_lens(sharp, depth, targets, lenses if n > 1 else lenses[0], **fit_options)
+        found, moved, geometry, depth, fit = _aligned_fit(
+            photos,
+            found,
+            geometry,
+            chart,
+            image,
+            fit,
+            median,
+            (f, pixel_pitch, focus),
+            fit_options,
+        )
     return ChartCalibration(
         fit=_with_scale_error(fit, geometry.f_px_se / geometry.f_px),
         views=tuple(found),
@@ -283,6 +273,25 @@ class _Geometry:
         return sharp, depth
 
 
+def _aligned_fit(
+    photos, found, geometry: _Geometry, chart, image, fit: FitResult, median, camera, fit_options
+):
+    """The chart found again in each photo with its fitted blur (`_aligned`), the camera, poses
+    and scene that follow, and the lens fitted again from `fit`'s, its focus distance moved
+    with the chart's depth (median `median` before): `(views, moved, geometry, depth, fit)`."""
+    aligned = [
+        _aligned(p, v, geometry, chart, image, fit, k)
+        for k, (p, v) in enumerate(zip(photos, found))
+    ]
+    found, moved = [a[0] for a in aligned], tuple(a[1] for a in aligned)
+    geometry = _Geometry.of(found, *camera)
+    sharp, depth = geometry.scene(chart, image, photos[0])
+    lenses = [_lens_at(fit, k, float(np.nanmedian(depth)) / median) for k in range(len(photos))]
+    targets = photos[0] if len(photos) == 1 else np.stack(photos)
+    fit = fit_lens(sharp, depth, targets, lenses if len(photos) > 1 else lenses[0], **fit_options)
+    return found, moved, geometry, depth, fit
+
+
 def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: int):
     """`align_view` of photo `k` with the chart as `fit`'s lens for it renders it."""
     sharp, depth = chart_scene(chart, image, geometry.poses[k], geometry.camera, photo.shape)
@@ -299,6 +308,20 @@ def _lens_at(fit: FitResult, k: int, scale: float) -> ThinLens:
     moved so): the blur, which depends on depth over focus distance, stays."""
     lens = jax.tree_util.tree_map(lambda x: float(x[k]), fit.lenses)
     return ThinLens(lens.focal_length, lens.f_number, lens.focus_distance * scale, lens.pixel_pitch)
+
+
+def _camera(exif: ExifLens, shape, focal_length, pixel_pitch):
+    """`(f, pitch, focus)`: the focal length and the pixel pitch, the caller's else EXIF's (the
+    pitch from its sensor width), and EXIF's focus distance where it is usable (finite, beyond
+    `f`); `None` where unknown."""
+    h, w = shape[:2]
+    f = focal_length if focal_length is not None else exif.focal_length
+    if pixel_pitch is None:
+        width = exif.sensor_width(w, h)
+        pixel_pitch = None if width is None else width / w
+    focus = exif.focus_distance
+    usable = focus is not None and math.isfinite(focus) and (f is None or focus > f)
+    return f, pixel_pitch, focus if usable else None
 
 
 def _with_scale_error(fit: FitResult, rel: float) -> FitResult:
