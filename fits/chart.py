@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import json
 import math
 import os
 import shlex
@@ -77,7 +78,7 @@ from jaxdof.internal import release_compiled_code  # noqa: E402
 FOCUS_TOL = 0.02  # |d_f / d_f,true - 1|
 K_TOL = 0.05  # |K / K_true - 1|
 SIGMAS = 3.0  # an error beyond this many reported standard errors is a silent miss
-INPUTS = ("jpeg", "linear")
+INPUTS = ("jpeg", "linear", "cli")
 # Where the chart is not found in a JPEG, the same JPEG again with the markers found in a sharp
 # photo of the same pose (a pinhole render: as a photo stopped down from the tripod would give
 # them), passed as `views`: the fit, apart from the detection.
@@ -85,6 +86,7 @@ GIVEN = "jpeg_markers"
 INPUT_WORDS = {
     "jpeg": "jpeg",
     "linear": "linear",
+    "cli": "jpeg file, `jaxdof calibrate`",
     GIVEN: "jpeg, markers from a sharp photo",
 }
 VERDICTS = ("within", "flagged", "silent", "raised", "covered")
@@ -206,7 +208,10 @@ def record(cal, data) -> dict:
 
 def calibrate_case(data, which: str) -> dict:
     """`jaxdof.calibrate(photo, chart, image, focal_length=f)`, default options, on the case's
-    JPEG or linear photo (float32); an exception is caught and recorded."""
+    JPEG or linear photo (float32); an exception is caught and recorded. `cli`: the command
+    line on the JPEG file instead (`cli_case`)."""
+    if which == "cli":
+        return cli_case(data)
     photo = data.photo if which == "linear" else data.jpeg
     photo = np.asarray(photo, np.float32)
     head = dict(case=data.case.name, input=which)
@@ -232,6 +237,62 @@ def calibrate_case(data, which: str) -> dict:
     return dict(**head, seconds=time.perf_counter() - t0, **record(cal, data))
 
 
+def _sidecar(chart, image):
+    """The chart's sidecar file (written once, beside the renders)."""
+    stem = CACHE / "cli" / f"chart_{raster_hash(image)}"
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    if not stem.with_suffix(".json").exists():
+        jaxdof.write_chart(stem, chart, image)
+    return stem.with_suffix(".json")
+
+
+class _FromJson:
+    """A `FitResult`'s parts that `record` reads, from `jaxdof calibrate --json`'s output."""
+
+    def __init__(self, out: dict):
+        first = out["lenses"][0]
+        self.lens = jaxdof.ThinLens(
+            *(first[k] for k in ("focal_length", "f_number", "focus_distance", "pixel_pitch"))
+        )
+        self.focus_power = first["focus_power"]
+        self.focus_power_stderr = first["focus_power_stderr"] or math.nan
+        self.names = out["names"]
+        self.covariance = np.array(
+            [[math.nan if x is None else x for x in row] for row in out["covariance"]]
+        )
+        self.success, self.message = out["success"], out["message"]
+        self.stderr_kind, self.pixels_used = out["stderr_kind"], out["pixels_used"]
+        self._out = out
+
+    def to_dict(self):
+        return self._out
+
+
+def cli_case(data) -> dict:
+    """`jaxdof calibrate JPEG --chart SIDECAR --focal-length F --json` as a user runs it on the
+    case's camera JPEG file (which reads its chroma subsampling from the file: luma), scored as
+    the library's calls are; the pose is not compared (`pose_error` needs the library's
+    objects)."""
+    head = dict(case=data.case.name, input="cli")
+    cmd = [sys.executable, "-m", "jaxdof", "calibrate", str(data.jpeg_path), "--json", "--quiet"]
+    cmd += ["--chart", str(_sidecar(data.chart, data.image))]
+    cmd += ["--focal-length", f"{focal_length(data.case) * 1000:.4f}mm"]
+    t0 = time.perf_counter()
+    out = subprocess.run(
+        cmd, capture_output=True, text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"}
+    )
+    secs = time.perf_counter() - t0
+    if out.returncode not in (0, 1):
+        last = (out.stderr.strip().splitlines() or [""])[-1]
+        return dict(**head, seconds=secs, exception=no_paths(f"exit {out.returncode}: {last}"))
+    summary = json.loads(out.stdout)
+
+    class Cal:  # what `record` reads of a calibration
+        fit = _FromJson(summary)
+
+    return dict(**head, seconds=secs, exit=out.returncode, **record(Cal, data))
+
+
 def cli_no_chart(chart, image) -> dict:
     """`jaxdof calibrate` on the photo without the chart: exit status and wall time (the
     subprocess's, interpreter start included). Skipped when the CLI has no `calibrate`."""
@@ -241,12 +302,8 @@ def cli_no_chart(chart, image) -> dict:
     ).stdout
     if "calibrate" not in help_text.split("positional arguments")[-1].split("options")[0]:
         return dict(skipped="the CLI has no `calibrate` command")
-    stem = CACHE / "cli" / f"chart_{raster_hash(image)}"
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    if not stem.with_suffix(".json").exists():
-        jaxdof.write_chart(stem, chart, image)
     cmd = [sys.executable, "-m", "jaxdof", "calibrate", str(path)]
-    cmd += ["--chart", str(stem.with_suffix(".json"))]
+    cmd += ["--chart", str(_sidecar(chart, image))]
     cmd += ["--focal-length", f"{focal_length(NO_CHART) * 1000:.1f}mm"]
     t0 = time.perf_counter()
     out = subprocess.run(
@@ -496,8 +553,12 @@ def method_lines() -> list[str]:
         "radiance in the dark). `f` is the truth's focal length as EXIF gives it (a 36 mm wide "
         "sensor: f = f_px 36 mm / 640). The truth lens is `lens_from_raytracer(A, d_f, fov, "
         "640, f)` (K = A f_px / d_f). Each photo is exposed so that its 99.5th percentile is "
-        "0.9 and fitted twice: **linear** (the float32 render) and **jpeg** (sRGB 8 bit, Pillow "
-        "quality 90, 4:2:0, decoded to linear: `_captures_scenes.camera_jpeg`).",
+        "0.9 and fitted as **linear** (the float32 render) and **jpeg** (sRGB 8 bit, Pillow "
+        "quality 90, 4:2:0, decoded to linear: `_captures_scenes.camera_jpeg`), and its JPEG "
+        "file through the command line as a user runs it (**jpeg file, `jaxdof calibrate`**: "
+        "`jaxdof calibrate photo.jpg --chart chart.json --focal-length F --json --quiet`, which "
+        "reads the 4:2:0 subsampling from the file and compares the photos' luma; its "
+        "compilation cache is the user's).",
         "",
         f"Verdicts: **within** focus distance within {FOCUS_TOL:.0%} and K within "
         f"{K_TOL:.0%}; **flagged** outside and success=False; **silent** outside, "

@@ -837,11 +837,13 @@ def run_calibrate(args) -> int:
     summary = report.fit_summary(cal.fit)
     summary["chart"] = cal.to_dict()
     if not args.json:
-        for path, entry in zip(args.photos, summary["chart"]["photos"]):
+        moved = cal.aligned_px or (None,) * len(args.photos)
+        for path, entry, m in zip(args.photos, summary["chart"]["photos"], moved):
+            again = "" if m is None else f", aligned again with the fitted blur (moved {m:.2f} px)"
             print(
                 f"{path}: {entry['markers']} markers, homography error "
-                f"{entry['reprojection_error_px']:.2f} px, tilt {entry['tilt_deg']:.1f} deg, "
-                f"chart at {entry['distance_m']:.3g} m"
+                f"{entry['reprojection_error_px']:.2f} px{again}, tilt {entry['tilt_deg']:.1f} "
+                f"deg, chart at {entry['distance_m']:.3g} m"
             )
         near, far = cal.depth_range
         pm = f" +- {cal.focal_px_stderr:.1f}" if cal.focal_px_stderr > 0 else ""
