@@ -288,7 +288,15 @@ def _aligned_fit(
     sharp, depth = geometry.scene(chart, image, photos[0])
     lenses = [_lens_at(fit, k, float(np.nanmedian(depth)) / median) for k in range(len(photos))]
     targets = photos[0] if len(photos) == 1 else np.stack(photos)
-    fit = fit_lens(sharp, depth, targets, lenses if len(photos) > 1 else lenses[0], **fit_options)
+    # One start: the first fit's starts found the basin, and the chart moved by tenths of a
+    # pixel.
+    fit = fit_lens(
+        sharp,
+        depth,
+        targets,
+        lenses if len(photos) > 1 else lenses[0],
+        **{"starts": 1, **fit_options},
+    )
     return found, moved, geometry, depth, fit
 
 
