@@ -83,3 +83,44 @@ def test_help():
     for command in ("chart", "calibrate"):
         with pytest.raises(SystemExit):
             jaxdof._cli.parse.build_parser().parse_args([command, "--help"])
+
+
+@pytest.mark.slow  # 439 s on a shared 2-core machine with two studies beside it
+def test_calibrate_a_camera_jpeg(sidecar, tmp_path, capsys):
+    """A camera JPEG (4:2:0, quality 95) of the chart tilted 35 degrees through f/2 focused at
+    0.5 m, 320 x 240: `jaxdof calibrate --json` exits 0 with the lens (focus distance within
+    2 %, blur scale within 5 %), compares the luma (the file's subsampling), aligns the chart
+    again with the fitted blur, and writes the figure."""
+    from PIL import Image
+
+    from jaxdof._chart._geometry import camera_matrix
+
+    chart, raster = jaxdof.read_chart(sidecar)
+    shape, f_px, focal = (240, 320), 380.0, 0.025
+    a, b = np.radians(15), np.radians(35)
+    rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    r = ry @ rx
+    centre = np.array([chart.width_m / 2, chart.height_m / 2, 0])
+    pose = jaxdof.ChartPose(r, np.array([0, 0, 0.45]) - r @ centre)
+    sharp, depth = jaxdof.chart_scene(chart, raster, pose, camera_matrix(f_px, shape), shape)
+    s = focal * 0.5 / (0.5 - focal)
+    truth = jaxdof.ThinLens(focal, 2.0, 0.5, s / f_px)
+    photo = np.asarray(jaxdof.render(sharp, jaxdof.fill_depth_holes(depth), truth))
+    rgb = np.stack([photo * 0.9, photo * 0.8, photo * 0.7], axis=-1)  # a warm light
+    codes = np.round(np.clip(jaxdof._io.linear_to_srgb(rgb), 0, 1) * 255).astype(np.uint8)
+    path = tmp_path / "photo.jpg"
+    Image.fromarray(codes).save(path, quality=95, subsampling=2)
+    args = ["calibrate", str(path), "--chart", str(sidecar), "--json", "--quiet"]
+    args += ["--focal-length", "25mm", "--sensor-width", f"{s / f_px * 320 * 1000:.6f}mm"]
+    assert main([*args, "--plot", str(tmp_path / "fit.png")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    lens = out["lenses"][0]
+    assert lens["focus_distance"] == pytest.approx(0.5, rel=0.02)
+    k = jaxdof.ThinLens(
+        *(lens[n] for n in ("focal_length", "f_number", "focus_distance", "pixel_pitch"))
+    )
+    assert float(k.blur_scale) == pytest.approx(float(truth.blur_scale), rel=0.05)
+    assert out["nuisances"]["luma"]["fitted"]
+    assert len(out["chart"]["aligned_px"]) == 1
+    assert (tmp_path / "fit.png").stat().st_size > 0
