@@ -26,6 +26,9 @@ _ITERATIONS = 20  # Levenberg-Marquardt steps at most
 _STOP_PX = 1e-3  # a step that moves no corner further than this ends the search
 _SAMPLES = 400_000  # chart pixels compared at most (a regular subsample beyond)
 _MARGIN_PX = 2  # kept clear of the chart's outline beyond the largest circle
+# `detect_chart` places the corners within about half a pixel: a move beyond this is the
+# template's error (a lens far off), not the chart's, and the view is kept as it was.
+_MAX_MOVE_PX = 2.0
 
 
 def align_view(
@@ -52,15 +55,16 @@ def align_view(
     `A H(\delta)^{-1}` (`A` = `at`; cubic splines) and compared with the photo after the best gain,
     quadratic across the frame, and offset (solved exactly at each `\delta`: the print's
     uneven light). Levenberg-Marquardt on the eight moves, its Jacobian by finite differences.
-    Where the search makes the match worse (it cannot, from `\delta = 0`), `view` is returned.
+    Where the search does not improve the match, or moves a corner by more than 2 px (more than
+    the detection's error: the template is off), `view` is returned.
     """
     light = _linear(photo).astype(np.float64)
     h, w = light.shape
     ys, xs = np.nonzero(usable)
     if ys.size < 64:
         return view, 0.0
-    step = max(1, math.ceil(math.sqrt(ys.size / _SAMPLES)))
-    ys, xs = ys[:: step * step], xs[:: step * step]
+    every = max(1, math.ceil(ys.size / _SAMPLES))
+    ys, xs = ys[::every], xs[::every]
     coefs = ndimage.spline_filter(np.asarray(template, np.float64), order=3)
     u, v = (xs - w / 2) / w, (ys - h / 2) / w
     basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v])
@@ -97,9 +101,9 @@ def align_view(
             break
         if np.abs(move).max() < _STOP_PX:
             break
-    if not r @ r < r0 @ r0:
-        return view, 0.0
     moved = float(np.abs(_project(homography(delta), chart) - seen).max())
+    if not r @ r < r0 @ r0 or not moved <= _MAX_MOVE_PX:
+        return view, 0.0
     return dataclasses.replace(view, homography=homography(delta)), moved
 
 
