@@ -7,6 +7,7 @@ comparison of a camera JPEG, chosen from the photo's colour detail."""
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from jax.test_util import check_grads
 
 import jaxdof
@@ -207,6 +208,28 @@ def test_illumination_is_fitted_where_light_falls_from_one_side():
     np.testing.assert_allclose(v["illumination_y"][0], 0.0, atol=0.03)
     np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
     np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
+
+
+def test_gains_forced_on_tiles():
+    """On tiles (a budget that leaves a few of them) the forced gains see each pixel's place in
+    the whole frame: a photo lit `1 + 0.25 u` and darkened `1 - 0.2 rho^2` at the corners comes
+    back with both, and the lens within 1 %; registration, which resamples across the frame,
+    asks for the whole frame."""
+    image, depth = _scene(120, 160)
+    clean = np.asarray(jaxdof.render(image, depth, _lens(2.8, 2.5, 160)))
+    lit = _camera(clean, ("vignetting", "illumination"), vignetting_r2=-0.2, illumination_x=0.25)
+    held = dict(exposure=False, registration=False, footprint=False, method="soft")
+    kw = dict(vignetting=True, illumination=True, tiles=2048, **held)
+    fit = jaxdof.fit_lens(image, depth, _noisy(lit, 0.005), _lens(4.0, 2.0, 160), **kw)
+    assert len(fit.tiles) > 1 and int(fit.pixels_used) < 120 * 160 // 2
+    v = {**fit.nuisances["illumination"]["values"], **fit.nuisances["vignetting"]["values"]}
+    np.testing.assert_allclose(v["illumination_x"][0], 0.25, atol=0.03)
+    np.testing.assert_allclose(v["illumination_y"][0], 0.0, atol=0.03)
+    np.testing.assert_allclose(v["vignetting_r2"][0], -0.2, atol=0.05)
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
+    with pytest.raises(ValueError, match="registration is fitted on the whole frame"):
+        jaxdof.fit_lens(image, depth, lit, _lens(4.0, 2.0, 160), registration=True, tiles=2048)
 
 
 def test_vignetting_and_registration_forced():

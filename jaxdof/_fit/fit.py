@@ -844,7 +844,8 @@ def fit_lens(
       lit from one side); a shift and magnification (focus breathing), per target.
       `None` (default): fitted where a score test at the fit without it rejects and fitting it
       explains more than the model's error (`select.with_nuisances`); `True`/`False` force it.
-      Vignetting, illumination and registration need the whole frame (`tiles=None`).
+      On tiles the gains are fitted only where forced, and registration not at all (it needs
+      `tiles=None`).
     - `luma`: compare colour photos in their sRGB luma (a camera JPEG's colour is stored at half
       resolution); `None` decides from the photo's colour detail.
     - `starts`: the number of starts (default 4 with a free focus, else 3): `init`, then focus
@@ -1102,11 +1103,10 @@ def _set_up(
         levels = 1
     user_window = None if max_radius is None else window
     run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, 1, band)
-    framed = FRAMED & set(p.spec.nuisances)
-    if framed and budget is not None:
+    if "registration" in p.spec.nuisances and budget is not None:
         raise ValueError(
-            f"{' and '.join(sorted(framed))} are fitted on the whole frame (they depend on where "
-            "a pixel is in it), not on tiles: pass tiles=None"
+            "registration is fitted on the whole frame (it resamples the photo, reading pixels "
+            "across it), not on tiles: pass tiles=None"
         )
     if "registration" in p.spec.nuisances:
         reach = _registration_reach(p.photo) if registration_reach is None else registration_reach

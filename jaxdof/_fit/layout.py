@@ -86,6 +86,8 @@ class _Layout(eqx.Module):
       with the focus distance fixed, under the focus distance.
     - `live`: `(p,)` the slots of `y` that some field reads (the free parameters): the only
       Jacobian columns that are not zero by construction, so the only ones computed.
+    - `frame_vu`: `(2, H, W)` where each photo pixel is in the whole frame (`photo.frame`'s
+      units), on a mosaic of tiles, for the gains that depend on it; `None` on the whole frame.
     """
 
     # numpy arrays in `fit_lens` (built without device calls), jax arrays under jit.
@@ -94,6 +96,7 @@ class _Layout(eqx.Module):
     use: Bool[_Arr, "t 3"]
     fcap: Float[_Arr, " t"]
     live: Int[_Arr, " p"]
+    frame_vu: Float[_Arr, "2 h w"] | None = None
 
 
 class _Spec:

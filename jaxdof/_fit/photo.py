@@ -57,7 +57,8 @@ _TAPS = np.arange(-_LANCZOS + 1, _LANCZOS + 1)
 _LUMA = (0.299, 0.587, 0.114)
 
 
-# The nuisances that depend on where a pixel is in the whole frame: not fitted on tiles.
+# The nuisances that depend on where a pixel is in the whole frame: not tested on tiles (a fit
+# on tiles fits the gains where asked, with each pixel's place in the frame, `_Layout.frame_vu`).
 FRAMED = frozenset({"vignetting", "illumination", "registration"})
 
 
@@ -127,17 +128,26 @@ def register(img: Float[Array, "h w c"], shift_x, shift_y, magnification) -> Arr
     return _resample(_resample(img, rows, 0), cols, 1)
 
 
-def vignette(h: int, w: int, a2, a4, dtype) -> Float[Array, "h w 1"]:
-    """The radial gain `1 + a2 rho^2 + a4 rho^4` (`rho` over the half diagonal)."""
+def _places(h: int, w: int, dtype, frame_vu=None) -> tuple[Array, Array]:
+    """Each pixel's `(v, u)` in the frame (half diagonals from its centre), broadcastable to
+    `(h, w)`: from `frame`, or `frame_vu` `(2, h, w)` (a mosaic of tiles)."""
+    if frame_vu is not None:
+        return frame_vu[0].astype(dtype), frame_vu[1].astype(dtype)
     v, u, _ = frame(h, w, dtype)
-    rho2 = v[:, None] ** 2 + u[None, :] ** 2
+    return v[:, None], u[None, :]
+
+
+def vignette(h: int, w: int, a2, a4, dtype, frame_vu=None) -> Float[Array, "h w 1"]:
+    """The radial gain `1 + a2 rho^2 + a4 rho^4` (`rho` over the half diagonal)."""
+    v, u = _places(h, w, dtype, frame_vu)
+    rho2 = v**2 + u**2
     return (1 + a2 * rho2 + a4 * rho2 * rho2)[..., None]
 
 
-def illuminate(h: int, w: int, cx, cy, dtype) -> Float[Array, "h w 1"]:
+def illuminate(h: int, w: int, cx, cy, dtype, frame_vu=None) -> Float[Array, "h w 1"]:
     """The tilted gain `1 + cx u + cy v` (`u, v` over the half diagonal, 0 at the centre)."""
-    v, u, _ = frame(h, w, dtype)
-    return (1 + cx * u[None, :] + cy * v[:, None])[..., None]
+    v, u = _places(h, w, dtype, frame_vu)
+    return (1 + cx * u + cy * v)[..., None]
 
 
 def srgb_encode(x: Array) -> Array:
@@ -163,9 +173,11 @@ def camera(
     params: dict[str, Array],
     nuisances: tuple[str, ...],
     is_luma: bool,
+    frame_vu: Float[Array, "2 h w"] | None = None,
 ) -> Array:
     """The photos `(T, H, W[, C])` (one channel with `luma`) from the renders `raw`, with the
-    fitted `nuisances`' parameters `params` (name -> `(T,)`); every other part at its null."""
+    fitted `nuisances`' parameters `params` (name -> `(T,)`); every other part at its null.
+    `frame_vu`: each pixel's place in the frame, where `raw` is a mosaic of tiles."""
     grey = raw.ndim == 3
     x = raw[..., None] if grey else raw
     _, h, w, _ = x.shape
@@ -174,9 +186,11 @@ def camera(
         if "registration" in nuisances:
             img = register(img, p["shift_x"], p["shift_y"], p["magnification"])
         if "vignetting" in nuisances:
-            img = img * vignette(h, w, p["vignetting_r2"], p["vignetting_r4"], img.dtype)
+            a2, a4 = p["vignetting_r2"], p["vignetting_r4"]
+            img = img * vignette(h, w, a2, a4, img.dtype, frame_vu)
         if "illumination" in nuisances:
-            img = img * illuminate(h, w, p["illumination_x"], p["illumination_y"], img.dtype)
+            cx, cy = p["illumination_x"], p["illumination_y"]
+            img = img * illuminate(h, w, cx, cy, img.dtype, frame_vu)
         if "exposure" in nuisances:
             img = p["gain"] * img + p["offset"]
         return img

@@ -81,7 +81,8 @@ class _Model(eqx.Module):
 
     def predict(self, y, args) -> Array:
         """Predicted targets `(T, H, W[, C])` (one channel with `luma`) for parameters `y`."""
-        return camera(self.render(y, args), self.nuisance_params(y), self.nuisances, self.luma)
+        raw, layout = self.render(y, args), args[4]
+        return camera(raw, self.nuisance_params(y), self.nuisances, self.luma, layout.frame_vu)
 
     def rounding(self, args) -> Array:
         """Each residual's own rounding `(n,)`, `eps |sqrt(w) T|` in the data's precision: a render

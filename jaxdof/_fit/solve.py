@@ -364,7 +364,7 @@ def nuisance_columns(model: _Model, y, args, which=tuple(NUISANCES)) -> dict[str
     """For every nuisance of `which` the fit lacks, the derivatives of the weighted residual with
     respect to its parameters at their null values, `(n, q T)`: from one render (no refit),
     through `photo.camera` only."""
-    _, _, targets, sqrt_w, _ = args
+    _, _, targets, sqrt_w, layout = args
     y = y.astype(targets.dtype)
     raw = model.render(y, args)
     params = model.nuisance_params(y)
@@ -377,7 +377,8 @@ def nuisance_columns(model: _Model, y, args, which=tuple(NUISANCES)) -> dict[str
 
         def r(v, names=names, on=on):
             p = {**params, **{n: v[i] for i, n in enumerate(names)}}
-            return ((camera(raw, p, on, model.luma) - targets) * sqrt_w).reshape(-1)
+            pred = camera(raw, p, on, model.luma, layout.frame_vu)
+            return ((pred - targets) * sqrt_w).reshape(-1)
 
         v0 = jnp.stack([params[n] for n in names])
         out[name] = jax.jacfwd(r)(v0).reshape(-1, v0.size)

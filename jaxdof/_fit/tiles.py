@@ -62,6 +62,7 @@ import numpy as np
 from .. import _tuning
 from .._corrections import depth_edges
 from .layout import pack
+from .photo import half_diagonal
 from .prepare import Problem
 from .residual import _Model
 from .solve import restate, run_stage
@@ -326,6 +327,12 @@ def tiled_problem(p: Problem, tiles: Tiles) -> Problem:
     mask = tiles.interior_mask()
     mask = mask[None, :, :, None] if sqrt_w.ndim == 4 else mask[None]
     sqrt_w = (sqrt_w * mask).astype(p.sqrt_w.dtype)
+    # Each mosaic pixel's place in the whole frame, for the gains that depend on it.
+    h, w = p.photo
+    r = half_diagonal(h, w)
+    v, u = (np.arange(h) + 0.5 - h / 2) / r, (np.arange(w) + 0.5 - w / 2) / r
+    places = np.stack(np.broadcast_arrays(v[:, None], u[None, :]))
+    frame_vu = tiles.mosaic(places, 1, 1, 0).astype(p.dtype)
     return dataclasses.replace(
         p,
         image=image,
@@ -333,4 +340,5 @@ def tiled_problem(p: Problem, tiles: Tiles) -> Problem:
         targets=targets,
         sqrt_w=sqrt_w,
         d=np.asarray(depth, np.float64),
+        layout=dataclasses.replace(p.layout, frame_vu=frame_vu),
     )
