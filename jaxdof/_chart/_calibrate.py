@@ -213,7 +213,7 @@ def calibrate(
             chart,
             image,
             fit,
-            median,
+            (sharp, depth),
             (f, pixel_pitch, focus),
             fit_options,
         )
@@ -274,13 +274,17 @@ class _Geometry:
 
 
 def _aligned_fit(
-    photos, found, geometry: _Geometry, chart, image, fit: FitResult, median, camera, fit_options
+    photos, found, geometry: _Geometry, chart, image, fit: FitResult, first, camera, fit_options
 ):
     """The chart found again in each photo with its fitted blur (`_aligned`), the camera, poses
     and scene that follow, and the lens fitted again from `fit`'s, its focus distance moved
-    with the chart's depth (median `median` before): `(views, moved, geometry, depth, fit)`."""
+    with the chart's depth; `first`: the first photo's scene `(sharp, depth)`, which `fit` was
+    fitted on. Returns `(views, moved, geometry, depth, fit)`."""
+    sharp0, depth0 = first
+    grey0 = sharp0[..., 0] if sharp0.ndim == 3 else sharp0
+    median = float(np.nanmedian(depth0))
     aligned = [
-        _aligned(p, v, geometry, chart, image, fit, k)
+        _aligned(p, v, geometry, chart, image, fit, k, (grey0, depth0) if k == 0 else None)
         for k, (p, v) in enumerate(zip(photos, found))
     ]
     found, moved = [a[0] for a in aligned], tuple(a[1] for a in aligned)
@@ -300,9 +304,12 @@ def _aligned_fit(
     return found, moved, geometry, depth, fit
 
 
-def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: int):
-    """`align_view` of photo `k` with the chart as `fit`'s lens for it renders it."""
-    sharp, depth = chart_scene(chart, image, geometry.poses[k], geometry.camera, photo.shape)
+def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: int, scene=None):
+    """`align_view` of photo `k` with the chart as `fit`'s lens for it renders it; `scene`: its
+    `chart_scene` where already made (the first photo's, which the first fit used)."""
+    sharp, depth = scene or chart_scene(
+        chart, image, geometry.poses[k], geometry.camera, photo.shape
+    )
     lens = jax.tree_util.tree_map(lambda x: x[k], fit.lenses)
     template = np.asarray(render(sharp, depth, lens, fill_holes=True))
     on = np.isfinite(depth)
