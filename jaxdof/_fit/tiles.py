@@ -62,7 +62,7 @@ import numpy as np
 from .. import _tuning
 from .._corrections import depth_edges
 from .layout import pack
-from .photo import half_diagonal
+from .photo import frame
 from .prepare import Problem
 from .residual import _Model
 from .solve import restate, run_stage
@@ -328,10 +328,8 @@ def tiled_problem(p: Problem, tiles: Tiles) -> Problem:
     mask = mask[None, :, :, None] if sqrt_w.ndim == 4 else mask[None]
     sqrt_w = (sqrt_w * mask).astype(p.sqrt_w.dtype)
     # Each mosaic pixel's place in the whole frame, for the gains that depend on it.
-    h, w = p.photo
-    r = half_diagonal(h, w)
-    v, u = (np.arange(h) + 0.5 - h / 2) / r, (np.arange(w) + 0.5 - w / 2) / r
-    places = np.stack(np.broadcast_arrays(v[:, None], u[None, :]))
+    v, u, _ = frame(*p.photo, p.dtype)
+    places = np.stack(np.broadcast_arrays(np.asarray(v)[:, None], np.asarray(u)[None, :]))
     frame_vu = tiles.mosaic(places, 1, 1, 0).astype(p.dtype)
     return dataclasses.replace(
         p,
