@@ -406,6 +406,20 @@ def test_refinement_converges(wide_chart):
     assert coc == pytest.approx(8.0, rel=0.15) and corr > 0.95
 
 
+def _exact_view(c, homography) -> jaxdof.ChartView:
+    return jaxdof.ChartView(
+        np.zeros(0, int),
+        np.zeros((0, 4, 2)),
+        np.zeros((0, 4, 2)),
+        homography,
+        0.0,
+        0,
+        SHAPE,
+        0.5,
+        size_m=(c.width_m, c.height_m),
+    )
+
+
 def test_align_with_the_lens_blur(chart, tilted):
     """A photo from `jaxdof.render` (f/1.4 focused at 0.55 m: circles 0-3.7 px across the chart)
     and a homography whose corners are 0.4-0.6 px off: aligned with the lens's render of the
@@ -425,17 +439,7 @@ def test_align_with_the_lens_blur(chart, tilted):
     start = cv2.getPerspectiveTransform(
         c.corners.astype(np.float32), (seen[:, :2] / seen[:, 2:] + off).astype(np.float32)
     ).astype(np.float64)
-    view = jaxdof.ChartView(
-        np.zeros(0, int),
-        np.zeros((0, 4, 2)),
-        np.zeros((0, 4, 2)),
-        start,
-        0.0,
-        0,
-        SHAPE,
-        0.5,
-        size_m=(c.width_m, c.height_m),
-    )
+    view = _exact_view(c, start)
     at = chart_pose(*view.grid(), camera)
     sharp, depth = jaxdof.chart_scene(c, raster, at, camera, SHAPE)
     template = np.asarray(jaxdof.render(sharp, depth, lens, fill_holes=True))
@@ -447,6 +451,33 @@ def test_align_with_the_lens_blur(chart, tilted):
     assert 0.4 < moved < 0.8
     f_px = focal_from_homographies([aligned.homography], SHAPE)
     assert f_px == pytest.approx(F_PX, rel=0.01)
+
+
+@pytest.mark.parametrize("focus", [0.45, 0.6, math.inf])
+def test_focal_px_from_the_focal_length(chart, tilted, focus):
+    """With the focal length and the pitch given, the focal length in pixels is the image
+    distance's at the focus distance: at the chart's centre's distance without one (the pose
+    found at that distance: a fixed point, from `f / p` about 6 % short here), then at the
+    focus distance the first fit found, on the scale of the depth it was found with."""
+    from jaxdof._chart._calibrate import _focal_px, _focused
+
+    c, _ = chart
+    pose, camera, _ = tilted
+    view = _exact_view(c, pose.homography(camera))
+    points = view.grid()[0]
+    centre = float(pose.translation[2] + pose.rotation[2, :2] @ points.mean(0))
+    pitch = FOCAL * centre / (centre - FOCAL) / F_PX  # the chart's centre in focus
+    assert _focal_px(view, FOCAL, pitch, None) == pytest.approx(F_PX, rel=1e-4)
+    # a lens focused at `focus`; its depth map made with f_px at the centre's distance is
+    # `scale` too deep, and so is the focus distance fitted on it
+    truth = 1 / ((1 / FOCAL - 1 / focus) * pitch)
+    scale = F_PX / truth
+    f, p, found = _focused((FOCAL, pitch, None), focus * scale, F_PX)
+    assert (f, p) == (FOCAL, pitch)
+    assert 1 / found == pytest.approx(1 / focus, abs=1e-6)
+    assert _focal_px(view, FOCAL, pitch, found) == pytest.approx(truth, rel=1e-6)
+    # EXIF's focus distance stays
+    assert _focused((FOCAL, pitch, 0.7), focus * scale, F_PX) == (FOCAL, pitch, 0.7)
 
 
 @pytest.mark.parametrize("f_number, focus", [(16.0, 0.45), (2.0, 0.5), (1.4, 0.55)])

@@ -150,7 +150,9 @@ def calibrate(
     from the lens to the sensor over the pixel pitch (`focal_from_homographies`, with square
     pixels and the principal point at the centre), unless the focal length `f` and the pitch
     `p` are known: then `f_px = s / p` with the thin lens's `s = f d / (d - f)` at the focus
-    distance `d` (EXIF's, else the chart's median depth). Each photo's pose (`chart_pose`), the
+    distance `d`: EXIF's, else the chart centre's distance for the first fit (the pose at
+    `f_px` gives it: a fixed point) and the first fit's focus distance for the fit after the
+    alignment (`align`). Each photo's pose (`chart_pose`), the
     first photo's chart image and z-depth (`chart_scene`; off the chart: holes, left out of the
     fit with the pixels their circles reach), then `fit_lens` on the photos. The starting lens:
     EXIF's focal length, f-number and focus distance where recorded, else focus at the chart's
@@ -288,7 +290,7 @@ def _aligned_fit(
         for k, (p, v) in enumerate(zip(photos, found))
     ]
     found, moved = [a[0] for a in aligned], tuple(a[1] for a in aligned)
-    geometry = _Geometry.of(found, *camera)
+    geometry = _Geometry.of(found, *_focused(camera, _first_focus(fit), geometry.f_px))
     sharp, depth = geometry.scene(chart, image, photos[0])
     lenses = [_lens_at(fit, k, float(np.nanmedian(depth)) / median) for k in range(len(photos))]
     targets = photos[0] if len(photos) == 1 else np.stack(photos)
@@ -316,6 +318,27 @@ def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: 
     reach = float(np.max(np.asarray(coc_radius(np.where(on, depth, np.nanmedian(depth)), lens))))
     at = geometry.poses[k].homography(geometry.camera)
     return align_view(photo, view, template, at, usable_pixels(depth, reach))
+
+
+def _first_focus(fit: FitResult) -> float:
+    return float(np.ravel(np.asarray(fit.lenses.focus_distance))[0])
+
+
+def _focused(camera, focus_fit: float, f_px: float):
+    """`camera`'s `(f, pitch, focus)` with the focus distance `focus_fit` that the first photo's
+    fit found, where the focal length and the pitch are given and the focus distance is not:
+    the image distance `s = 1 / (1 / f - P)` (`P`: the focus power), hence `f_px = s / p`, is
+    the lens's at its focus, not at the chart's centre. The fitted power is on the scale of the
+    depth map made with `f_px`, and the depth scales with it: the fixed point of
+    `P = P_fit f_px / f_px(P)`, each pass shrinking the error by about `f P`."""
+    f, pitch, focus = camera
+    power = 1 / focus_fit
+    if focus is not None or f is None or pitch is None or not 0 <= power < 0.5 / f:
+        return camera
+    p = power
+    for _ in range(8):
+        p = power * f_px * pitch * (1 / f - p)
+    return f, pitch, (math.inf if p <= 0 else 1 / p)
 
 
 def _lens_at(fit: FitResult, k: int, scale: float) -> ThinLens:
@@ -380,15 +403,22 @@ def _facing(tilt: float) -> str:
 
 
 def _focal_px(view: ChartView, f: float, pitch: float, focus: float | None) -> float:
-    """`s / p` with the thin lens's image distance `s = f d / (d - f)` at the focus distance `d`
-    (given, else the chart's median distance from a first pose at `f / p`)."""
-    if focus is None:
-        camera = camera_matrix(f / pitch, view.shape)
-        points, pixels = view.grid()
-        pose = chart_pose(points, pixels, camera)
-        focus = float(pose.translation[2] + pose.rotation[2, :2] @ points.mean(0))
-        focus = max(focus, 2 * f)
-    return f * focus / (focus - f) / pitch
+    """`s / p` with the thin lens's image distance `s = f d / (d - f)` at the focus distance `d`:
+    given, else the z-depth of the chart's centre, found from the pose at `s / p`, which depends on
+    it: a fixed point (`ds / s = -f / (d - f) dd / d`, so each pass shrinks the error by about
+    `f / d`; starting from `s = f`, a lens focused at infinity, puts the chart about
+    `f / d` too near and `s` as much too short)."""
+    if focus is not None:
+        return 1 / ((1 / f - 1 / focus) * pitch)  # focus may be infinite
+    points, pixels = view.grid()
+    f_px = f / pitch
+    for _ in range(8):
+        pose = chart_pose(points, pixels, camera_matrix(f_px, view.shape))
+        d = max(float(pose.translation[2] + pose.rotation[2, :2] @ points.mean(0)), 2 * f)
+        f_px, last = f * d / (d - f) / pitch, f_px
+        if abs(f_px - last) <= 1e-9 * f_px:
+            break
+    return f_px
 
 
 def _pitch(f: float, f_px: float, d: float) -> float:
