@@ -17,6 +17,7 @@ import numpy as np
 from jaxtyping import Float
 from scipy import ndimage
 
+from .._holes import near_holes
 from ._detect import ChartView, _linear, _project
 from ._geometry import _hom4
 
@@ -110,5 +111,4 @@ def align_view(
 def usable_pixels(depth: Float[np.ndarray, "h w"], reach: float) -> np.ndarray:
     """The pixels on the chart (finite `depth`) at least `reach` plus a margin pixels inside its
     outline: their circles of confusion hold the chart's light alone."""
-    on = np.isfinite(depth)
-    return ndimage.binary_erosion(on, iterations=int(math.ceil(reach)) + _MARGIN_PX)
+    return ~near_holes(~np.isfinite(depth), reach + _MARGIN_PX)

@@ -17,6 +17,7 @@ from jaxtyping import Float
 from .. import _tuning
 from .._exif import ExifLens
 from .._fit import FitResult, fit_lens
+from .._holes import near_holes
 from .._lens import ThinLens, coc_radius
 from .._render import render
 from ._align import align_view, usable_pixels
@@ -40,6 +41,7 @@ _MIN_TILT = 10.0  # degrees: a chart closer to facing the camera gives too littl
 # chart's extent in the photo.
 _SAME_PX, _SAME_SHARE = 2.0, 0.01
 _F_NUMBER = 4.0  # the starting f-number when EXIF has none
+_KEEP = 0.5  # the share of the chart's pixels that the background's band leaves at least
 _GIVEN = "focal length and pixel pitch"
 
 
@@ -205,7 +207,13 @@ def calibrate(
         init = [_start(e or ExifLens(), f, pixel_pitch, geometry.f_px, median) for e in exifs]
     inits = tuple(init) if isinstance(init, Sequence) else (init,) * n
     targets = photos[0] if n == 1 else np.stack(photos)
-    fit = fit_lens(sharp, depth, targets, list(inits) if n > 1 else inits[0], **fit_options)
+    fit = fit_lens(
+        sharp,
+        depth,
+        targets,
+        list(inits) if n > 1 else inits[0],
+        **_off_chart(fit_options, depth, inits),
+    )
     moved: tuple[float, ...] = ()
     if align:
         found, moved, geometry, depth, fit = _aligned_fit(
@@ -301,7 +309,7 @@ def _aligned_fit(
         depth,
         targets,
         lenses if len(photos) > 1 else lenses[0],
-        **{"starts": 1, **fit_options},
+        **_off_chart({"starts": 1, **fit_options}, depth, lenses),
     )
     return found, moved, geometry, depth, fit
 
@@ -314,9 +322,8 @@ def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: 
     )
     lens = jax.tree_util.tree_map(lambda x: x[k], fit.lenses)
     template = np.asarray(render(sharp, depth, lens, fill_holes=True))
-    on = np.isfinite(depth)
-    reach = float(np.max(np.asarray(coc_radius(np.where(on, depth, np.nanmedian(depth)), lens))))
     at = geometry.poses[k].homography(geometry.camera)
+    reach = _background_reach(depth, [lens])
     return align_view(photo, view, template, at, usable_pixels(depth, reach))
 
 
@@ -339,6 +346,34 @@ def _focused(camera, focus_fit: float, f_px: float):
     for _ in range(8):
         p = power * f_px * pitch * (1 / f - p)
     return f, pitch, (math.inf if p <= 0 else 1 / p)
+
+
+def _background_reach(depth, lenses: Sequence[ThinLens]) -> float:
+    """How far (px) light from off the chart (holes in `depth`) reaches into the photo: there
+    the depth is unknown, and a background behind the chart blurs at most as a point at
+    infinity does, by the blur scale `K` (`ThinLens.blur_scale`, `r -> K` as `d -> inf`); the
+    chart's own circles where they are larger (`r = K |1 - d_f / d|`, near the camera)."""
+    on = np.isfinite(depth)
+    near = float(np.min(depth[on]))
+    return max(max(float(lens.blur_scale), float(coc_radius(near, lens))) for lens in lenses)
+
+
+def _off_chart(fit_options: dict, depth, lenses: Sequence[ThinLens]) -> dict:
+    """`fit_options` with the photo pixels that light from off the chart reaches
+    (`_background_reach`) weighted 0 (times the caller's `weight`): `fit_lens` leaves out those
+    its circles on the chart reach from a hole, and the background's, beyond the chart, are
+    larger. Where the band would leave under half the chart's pixels, it is halved until it
+    does not."""
+    holes = ~np.isfinite(depth)
+    reach, chart = _background_reach(depth, lenses), int(np.sum(~holes))
+    keep = ~near_holes(holes, reach)
+    while reach >= 1 and np.sum(keep) < _KEEP * chart:
+        reach /= 2
+        keep = ~near_holes(holes, reach)
+    weight = keep.astype(np.float32)
+    if fit_options.get("weight") is not None:
+        weight = weight * np.asarray(fit_options["weight"], np.float32)
+    return {**fit_options, "weight": weight}
 
 
 def _lens_at(fit: FitResult, k: int, scale: float) -> ThinLens:
