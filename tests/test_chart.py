@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 import jaxdof
 from jaxdof._chart._geometry import _footprint, camera_matrix, chart_pose, focal_from_homographies
@@ -573,6 +574,29 @@ def test_calibrate_needs_a_pitch(chart, tilted):
     photo = _photo(tilted[2], _lens(16.0, 0.45))
     with pytest.raises(jaxdof.ChartError, match="pixel pitch is unknown"):
         jaxdof.calibrate(photo, c, raster)
+
+
+def test_off_chart_light_is_left_out(tilted):
+    """The photo pixels within the blur scale `K` (the circle of a background at infinity) of
+    the chart's outline get weight 0, times the caller's weight; a band that would leave under
+    half the chart is halved until it does not."""
+    from jaxdof._chart._calibrate import _off_chart
+
+    _, _, (_, depth) = tilted
+    holes = np.isnan(depth)
+    lens = _lens(2.0, 0.45)
+    k = float(lens.blur_scale)
+    assert 5 < k < 20
+    given = np.full(depth.shape, 2.0, np.float32)
+    weight = _off_chart({"weight": given, "starts": 1}, depth, [lens])["weight"]
+    distance = ndimage.distance_transform_edt(~holes)
+    assert np.all(weight[distance <= math.floor(k)] == 0)
+    assert np.all(weight[distance > math.ceil(k) + 1] == 2.0)
+    # a lens whose band would cover the chart: the band shrinks, half the chart stays
+    wide = _lens(0.25, 0.45)  # K 42 px
+    assert np.sum(distance > float(wide.blur_scale)) < 0.5 * np.sum(~holes)
+    kept = _off_chart({}, depth, [wide])["weight"]
+    assert 0.5 <= kept.sum() / np.sum(~holes) < 1
 
 
 @pytest.mark.slow  # 23 s on a shared 2-core machine
