@@ -72,37 +72,50 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03, slope: float = EDGE_SLO
     with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
         for x, e in ((d, edges), (d.T, edges.T)):
             # inf - inf (within the sky) is NaN, which compares False: no edge.
-            jumps = np.abs(np.diff(x, axis=0)) > jump * np.minimum(x[:-1], x[1:])
-            for v in (x, 1 / x):  # (the sky at 1/d = 0)
-                jumps &= _uncontinued(np.diff(v, axis=0), slope)
-            e[:-1] |= jumps
-            e[1:] |= jumps
+            large = np.abs(np.diff(x, axis=0)) > jump * np.minimum(x[:-1], x[1:])
+            # The continuation test only where the step is large: few pairs of a real map.
+            rows, cols = np.nonzero(large)
+            steps = _steps_around(x, rows, cols)
+            jumps = _uncontinued(steps, slope) & _uncontinued(
+                _steps_around(1 / x, rows, cols), slope
+            )
+            e[rows[jumps], cols[jumps]] = True
+            e[rows[jumps] + 1, cols[jumps]] = True
     return edges
 
 
-def _uncontinued(step: np.ndarray, slope: float) -> np.ndarray:
-    """Whether each step `(n - 1, ...)` (the pair `(i, i + 1)`) differs from the surface's step on
-    its left and on its right by more than `slope` times the larger of them. A side's step is the
-    smaller (in magnitude) of the steps one and two out, `step[i - 1]`, `step[i - 2]` (right:
-    `i + 1`, `i + 2`), so that the far side of a structure one or two pixels wide, or the second
-    half of a jump spread over two pixels, does not count as the surface; beyond the frame the
-    pair's own step stands in (no evidence of a jump)."""
-    flat = np.nan_to_num(step, nan=0.0, posinf=np.inf, neginf=-np.inf)
+def _steps_around(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, inverse=False) -> np.ndarray:
+    """`(5, n)`: the steps `v[i + k + 1] - v[i + k]` along axis 0 of `v = x` (or `1 / x`, the sky
+    at 0) for `k = -2 .. 2` around the pairs `(rows, cols)` (the pair `(i, i + 1)` at `k = 0`),
+    the pair's own beyond the frame; NaN steps as 0."""
+    last = x.shape[0] - 2  # the last step's index
+    out = np.empty((5, rows.size), x.dtype)
+    for k in range(-2, 3):
+        i = np.clip(rows + k, 0, last)
+        a, b = x[i + 1, cols], x[i, cols]
+        out[k + 2] = 1 / a - 1 / b if inverse else a - b
+    out = np.nan_to_num(out, nan=0.0, posinf=np.inf, neginf=-np.inf)
+    beyond = (rows[None] + np.arange(-2, 3)[:, None] < 0) | (
+        rows[None] + np.arange(-2, 3)[:, None] > last
+    )
+    return np.where(beyond, out[2][None], out)
 
-    def shifted(k: int) -> np.ndarray:  # step[i + k], the pair's own beyond the frame
-        out = flat.copy()
-        if k > 0:
-            out[:-k] = flat[k:]
-        else:
-            out[-k:] = flat[:k]
-        return out
+
+def _uncontinued(steps: np.ndarray, slope: float) -> np.ndarray:
+    """Whether each pair's step (`steps[2]`, of `_steps_around`) differs from the surface's step
+    on its left and on its right by more than `slope` times the larger of them. A side's step is
+    the smaller (in magnitude) of the steps one and two out (left: `steps[1]`, `steps[0]`;
+    right: `steps[3]`, `steps[4]`), so that the far side of a structure one or two pixels wide,
+    or the second half of a jump spread over two pixels, does not count as the surface; beyond
+    the frame the pair's own step stands in (no evidence of a jump)."""
 
     def side(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.where(np.abs(a) <= np.abs(b), a, b)
 
-    s_l, s_r = side(shifted(-1), shifted(-2)), side(shifted(1), shifted(2))
+    own = steps[2]
+    s_l, s_r = side(steps[1], steps[0]), side(steps[3], steps[4])
     tol = slope * np.maximum(np.abs(s_l), np.abs(s_r))
-    return (np.abs(flat - s_l) > tol) & (np.abs(flat - s_r) > tol)
+    return (np.abs(own - s_l) > tol) & (np.abs(own - s_r) > tol)
 
 
 def edge_distance(depth: ArrayLike, *, jump: float = 0.03, limit: float = 64.0) -> np.ndarray:
