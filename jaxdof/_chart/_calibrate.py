@@ -17,6 +17,7 @@ from jaxtyping import Float
 from .. import _tuning
 from .._exif import ExifLens
 from .._fit import FitResult, fit_lens
+from .._fit.photo import NUISANCES
 from .._holes import near_holes
 from .._lens import ThinLens, coc_radius
 from .._render import render
@@ -302,14 +303,14 @@ def _aligned_fit(
     sharp, depth = geometry.scene(chart, image, photos[0])
     lenses = [_lens_at(fit, k, float(np.nanmedian(depth)) / median) for k in range(len(photos))]
     targets = photos[0] if len(photos) == 1 else np.stack(photos)
-    # One start: the first fit's starts found the basin, and the chart moved by tenths of a
-    # pixel.
+    # One start and the first fit's choices: its starts found the basin, its photo chose the
+    # treatment and the nuisances, and the chart moved by tenths of a pixel.
     fit = fit_lens(
         sharp,
         depth,
         targets,
         lenses if len(photos) > 1 else lenses[0],
-        **_off_chart({"starts": 1, **fit_options}, depth, lenses),
+        **_off_chart({"starts": 1, **_as_decided(fit), **fit_options}, depth, lenses),
     )
     return found, moved, geometry, depth, fit
 
@@ -346,6 +347,24 @@ def _focused(camera, focus_fit: float, f_px: float):
     for _ in range(8):
         p = power * f_px * pitch * (1 / f - p)
     return f, pitch, (math.inf if p <= 0 else 1 / p)
+
+
+def _as_decided(fit: FitResult) -> dict:
+    """The `fit_lens` options that treat the scene and the camera as `fit` decided: the filter
+    method, the footprint correction, the edge weight and each nuisance fitted or not."""
+    t = fit.treatment
+    if t is None:
+        return {}
+    nuisances = {k: bool(v.get("fitted")) for k, v in (fit.nuisances or {}).items()}
+    scene = {
+        "method": t.method if t.occlusion else "soft",
+        "footprint": t.footprint,
+        "edge_weight": t.edge_weight if t.edge_weight > 0 else False,
+    }
+    return {
+        **(scene if t.method != "model" else {}),  # (a caller's forward model: its own)
+        **{k: v for k, v in nuisances.items() if k in NUISANCES or k == "luma"},
+    }
 
 
 def _background_reach(depth, lenses: Sequence[ThinLens]) -> float:
