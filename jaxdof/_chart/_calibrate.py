@@ -18,6 +18,7 @@ from .. import _tuning
 from .._exif import ExifLens
 from .._fit import FitResult, fit_lens
 from .._fit.photo import NUISANCES
+from .._fit.solve import stage_note
 from .._holes import near_holes
 from .._lens import ThinLens, coc_radius
 from .._render import render
@@ -202,6 +203,7 @@ def calibrate(
             "the pixel pitch is unknown (no EXIF focal-plane resolution or 35 mm equivalent): "
             "give the sensor width or the focal length"
         )
+    stage_note("building the chart's image and depth")
     sharp, depth = geometry.scene(chart, image, photos[0])
     median = float(np.nanmedian(depth))
     if init is None:
@@ -291,6 +293,7 @@ def _aligned_fit(
     and scene that follow, and the lens fitted again from `fit`'s, its focus distance moved
     with the chart's depth; `first`: the first photo's scene `(sharp, depth)`, which `fit` was
     fitted on. Returns `(views, moved, geometry, depth, fit)`."""
+    stage_note("aligning the chart again with the fitted blur")
     sharp0, depth0 = first
     grey0 = sharp0[..., 0] if sharp0.ndim == 3 else sharp0
     median = float(np.nanmedian(depth0))
@@ -300,19 +303,20 @@ def _aligned_fit(
     ]
     found, moved = [a[0] for a in aligned], tuple(a[1] for a in aligned)
     geometry = _Geometry.of(found, *_focused(camera, _first_focus(fit), geometry.f_px))
+    stage_note("building the aligned chart's image and depth; fitting again")
     sharp, depth = geometry.scene(chart, image, photos[0])
     lenses = [_lens_at(fit, k, float(np.nanmedian(depth)) / median) for k in range(len(photos))]
     targets = photos[0] if len(photos) == 1 else np.stack(photos)
     # One start and the first fit's choices: its starts found the basin, its photo chose the
     # treatment and the nuisances, and the chart moved by tenths of a pixel.
-    fit = fit_lens(
+    again = fit_lens(
         sharp,
         depth,
         targets,
         lenses if len(photos) > 1 else lenses[0],
         **_off_chart({"starts": 1, **_as_decided(fit), **fit_options}, depth, lenses),
     )
-    return found, moved, geometry, depth, fit
+    return found, moved, geometry, depth, _told_as(again, fit)
 
 
 def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: int, scene=None):
@@ -365,6 +369,22 @@ def _as_decided(fit: FitResult) -> dict:
         **(scene if t.method != "model" else {}),  # (a caller's forward model: its own)
         **{k: v for k, v in nuisances.items() if k in NUISANCES or k == "luma"},
     }
+
+
+def _told_as(fit: FitResult, first: FitResult) -> FitResult:
+    """`fit`, made with `first`'s choices (`_as_decided`), reporting them as `first` made them:
+    the treatment's forced and selected choices, and each nuisance's entry (its score test, and
+    whether the caller forced it) with `fit`'s values."""
+    t, t0 = fit.treatment, first.treatment
+    if t is None or t0 is None:
+        return fit
+    kept = ("values", "reach")
+    nuisances = {
+        k: {**(first.nuisances or {}).get(k, v), **{n: x for n, x in v.items() if n in kept}}
+        for k, v in (fit.nuisances or {}).items()
+    }
+    treatment = dataclasses.replace(t, forced=t0.forced, selected=t0.selected)
+    return dataclasses.replace(fit, treatment=treatment, nuisances=nuisances)
 
 
 def _background_reach(depth, lenses: Sequence[ThinLens]) -> float:

@@ -823,7 +823,10 @@ def run_calibrate(args) -> int:
         pitch = None if args.sensor_width is None else args.sensor_width / shape[1]
         luma = True if any(chroma_subsampled(p) for p in args.photos) else None
         display.status("preparing and compiling the fit")
-        with library_checks(), out_of_memory("fit", shape):
+        progress = (
+            None if args.quiet else FitProgress(display, fields=("focus_distance", "f_number"))
+        )
+        with library_checks(), out_of_memory("fit", shape), _watched(progress):
             cal = jaxdof.calibrate(
                 photos if len(photos) > 1 else photos[0],
                 chart,
@@ -834,6 +837,8 @@ def run_calibrate(args) -> int:
                 views=views,
                 luma=luma,
             )
+        if progress is not None:
+            progress.close()
     summary = report.fit_summary(cal.fit)
     summary["chart"] = cal.to_dict()
     if not args.json:
