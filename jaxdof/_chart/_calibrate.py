@@ -210,13 +210,7 @@ def calibrate(
         init = [_start(e or ExifLens(), f, pixel_pitch, geometry.f_px, median) for e in exifs]
     inits = tuple(init) if isinstance(init, Sequence) else (init,) * n
     targets = photos[0] if n == 1 else np.stack(photos)
-    fit = fit_lens(
-        sharp,
-        depth,
-        targets,
-        list(inits) if n > 1 else inits[0],
-        **_off_chart(fit_options, depth, inits),
-    )
+    fit = _fit_chart(sharp, depth, targets, list(inits) if n > 1 else inits[0], fit_options)
     moved: tuple[float, ...] = ()
     if align:
         found, moved, geometry, depth, fit = _aligned_fit(
@@ -309,13 +303,8 @@ def _aligned_fit(
     targets = photos[0] if len(photos) == 1 else np.stack(photos)
     # One start and the first fit's choices: its starts found the basin, its photo chose the
     # treatment and the nuisances, and the chart moved by tenths of a pixel.
-    again = fit_lens(
-        sharp,
-        depth,
-        targets,
-        lenses if len(photos) > 1 else lenses[0],
-        **_off_chart({"starts": 1, **_as_decided(fit), **fit_options}, depth, lenses),
-    )
+    options = {"starts": 1, **_as_decided(fit), **fit_options}
+    again = _fit_chart(sharp, depth, targets, lenses if len(photos) > 1 else lenses[0], options)
     return found, moved, geometry, depth, _told_as(again, fit)
 
 
@@ -397,22 +386,43 @@ def _background_reach(depth, lenses: Sequence[ThinLens]) -> float:
     return max(max(float(lens.blur_scale), float(coc_radius(near, lens))) for lens in lenses)
 
 
-def _off_chart(fit_options: dict, depth, lenses: Sequence[ThinLens]) -> dict:
-    """`fit_options` with the photo pixels that light from off the chart reaches
-    (`_background_reach`) weighted 0 (times the caller's `weight`): `fit_lens` leaves out those
-    its circles on the chart reach from a hole, and the background's, beyond the chart, are
-    larger. Where the band would leave under half the chart's pixels, it is halved until it
-    does not."""
+def _fit_chart(sharp, depth, targets, init, fit_options: dict) -> FitResult:
+    """`fit_lens` on the chart's scene with the light from off the chart left out
+    (`_off_chart`), its band counted in the treatment's `hole_pixels` and `hole_reach`."""
+    reach = _band_reach(depth, list(init) if isinstance(init, Sequence) else [init])
+    options, band = _off_chart(fit_options, depth, reach)
+    fit = fit_lens(sharp, depth, targets, init, **options)
+    t = fit.treatment
+    if t is None:
+        return fit
+    wider = dataclasses.replace(
+        t, hole_pixels=max(t.hole_pixels, band), hole_reach=max(t.hole_reach, reach)
+    )
+    return dataclasses.replace(fit, treatment=wider)
+
+
+def _band_reach(depth, lenses: Sequence[ThinLens]) -> float:
+    """How far (px) from the chart's outline `_off_chart` leaves pixels out: the reach of light
+    from off the chart (`_background_reach`), halved while it would leave under half the
+    chart's pixels."""
     holes = ~np.isfinite(depth)
     reach, chart = _background_reach(depth, lenses), int(np.sum(~holes))
-    keep = ~near_holes(holes, reach)
-    while reach >= 1 and np.sum(keep) < _KEEP * chart:
+    while reach >= 1 and np.sum(~near_holes(holes, reach)) < _KEEP * chart:
         reach /= 2
-        keep = ~near_holes(holes, reach)
-    weight = keep.astype(np.float32)
+    return reach
+
+
+def _off_chart(fit_options: dict, depth, reach: float) -> tuple[dict, int]:
+    """`fit_options` with the photo pixels within `reach` (`_band_reach`) of the chart's
+    outline weighted 0 (times the caller's `weight`), and how many of them are on the chart:
+    `fit_lens` leaves out those its circles on the chart reach from a hole, and the
+    background's, beyond the chart, are larger."""
+    on = np.isfinite(depth)
+    near = near_holes(~on, reach)
+    weight = (~near).astype(np.float32)
     if fit_options.get("weight") is not None:
         weight = weight * np.asarray(fit_options["weight"], np.float32)
-    return {**fit_options, "weight": weight}
+    return {**fit_options, "weight": weight}, int(np.sum(near & on))
 
 
 def _lens_at(fit: FitResult, k: int, scale: float) -> ThinLens:
