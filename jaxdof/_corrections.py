@@ -75,10 +75,8 @@ def depth_edges(depth: ArrayLike, *, jump: float = 0.03, slope: float = EDGE_SLO
             large = np.abs(np.diff(x, axis=0)) > jump * np.minimum(x[:-1], x[1:])
             # The continuation test only where the step is large: few pairs of a real map.
             rows, cols = np.nonzero(large)
-            steps = _steps_around(x, rows, cols)
-            jumps = _uncontinued(steps, slope) & _uncontinued(
-                _steps_around(1 / x, rows, cols), slope
-            )
+            jumps = _uncontinued(_steps_around(x, rows, cols), slope)
+            jumps &= _uncontinued(_steps_around(x, rows, cols, inverse=True), slope)
             e[rows[jumps], cols[jumps]] = True
             e[rows[jumps] + 1, cols[jumps]] = True
     return edges
@@ -89,16 +87,11 @@ def _steps_around(x: np.ndarray, rows: np.ndarray, cols: np.ndarray, inverse=Fal
     at 0) for `k = -2 .. 2` around the pairs `(rows, cols)` (the pair `(i, i + 1)` at `k = 0`),
     the pair's own beyond the frame; NaN steps as 0."""
     last = x.shape[0] - 2  # the last step's index
-    out = np.empty((5, rows.size), x.dtype)
-    for k in range(-2, 3):
-        i = np.clip(rows + k, 0, last)
-        a, b = x[i + 1, cols], x[i, cols]
-        out[k + 2] = 1 / a - 1 / b if inverse else a - b
-    out = np.nan_to_num(out, nan=0.0, posinf=np.inf, neginf=-np.inf)
-    beyond = (rows[None] + np.arange(-2, 3)[:, None] < 0) | (
-        rows[None] + np.arange(-2, 3)[:, None] > last
-    )
-    return np.where(beyond, out[2][None], out)
+    at = rows[None] + np.arange(-2, 3)[:, None]  # (5, n) step indices
+    i = np.clip(at, 0, last)
+    a, b = x[i + 1, cols], x[i, cols]
+    out = np.nan_to_num(1 / a - 1 / b if inverse else a - b, nan=0.0, posinf=np.inf, neginf=-np.inf)
+    return np.where((at < 0) | (at > last), out[2][None], out)
 
 
 def _uncontinued(steps: np.ndarray, slope: float) -> np.ndarray:

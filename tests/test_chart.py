@@ -580,7 +580,7 @@ def test_off_chart_light_is_left_out(tilted):
     """The photo pixels within the blur scale `K` (the circle of a background at infinity) of
     the chart's outline get weight 0, times the caller's weight; a band that would leave under
     half the chart is halved until it does not."""
-    from jaxdof._chart._calibrate import _band_reach, _off_chart
+    from jaxdof._chart._calibrate import _off_chart
 
     _, _, (_, depth) = tilted
     holes = np.isnan(depth)
@@ -588,7 +588,8 @@ def test_off_chart_light_is_left_out(tilted):
     k = float(lens.blur_scale)
     assert 5 < k < 20
     given = np.full(depth.shape, 2.0, np.float32)
-    options, band = _off_chart({"weight": given, "starts": 1}, depth, _band_reach(depth, [lens]))
+    options, band, reach = _off_chart({"weight": given, "starts": 1}, depth, [lens])
+    assert reach == pytest.approx(k)
     weight = options["weight"]
     distance = ndimage.distance_transform_edt(~holes)
     assert np.all(weight[distance <= math.floor(k)] == 0)
@@ -597,7 +598,7 @@ def test_off_chart_light_is_left_out(tilted):
     # a lens whose band would cover the chart: the band shrinks, half the chart stays
     wide = _lens(0.25, 0.45)  # K 42 px
     assert np.sum(distance > float(wide.blur_scale)) < 0.5 * np.sum(~holes)
-    kept = _off_chart({}, depth, _band_reach(depth, [wide]))[0]["weight"]
+    kept = _off_chart({}, depth, [wide])[0]["weight"]
     assert 0.5 <= kept.sum() / np.sum(~holes) < 1
 
 

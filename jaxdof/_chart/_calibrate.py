@@ -17,7 +17,6 @@ from jaxtyping import Float
 from .. import _tuning
 from .._exif import ExifLens
 from .._fit import FitResult, fit_lens
-from .._fit.photo import NUISANCES
 from .._fit.solve import stage_note
 from .._holes import near_holes
 from .._lens import ThinLens, coc_radius
@@ -348,6 +347,7 @@ def _as_decided(fit: FitResult) -> dict:
     t = fit.treatment
     if t is None:
         return {}
+    # (`FitResult.nuisances`: one entry per `fit_lens` switch, the luma's included)
     nuisances = {k: bool(v.get("fitted")) for k, v in (fit.nuisances or {}).items()}
     scene = {
         "method": t.method if t.occlusion else "soft",
@@ -356,7 +356,7 @@ def _as_decided(fit: FitResult) -> dict:
     }
     return {
         **(scene if t.method != "model" else {}),  # (a caller's forward model: its own)
-        **{k: v for k, v in nuisances.items() if k in NUISANCES or k == "luma"},
+        **nuisances,
     }
 
 
@@ -389,8 +389,8 @@ def _background_reach(depth, lenses: Sequence[ThinLens]) -> float:
 def _fit_chart(sharp, depth, targets, init, fit_options: dict) -> FitResult:
     """`fit_lens` on the chart's scene with the light from off the chart left out
     (`_off_chart`), its band counted in the treatment's `hole_pixels` and `hole_reach`."""
-    reach = _band_reach(depth, list(init) if isinstance(init, Sequence) else [init])
-    options, band = _off_chart(fit_options, depth, reach)
+    lenses = list(init) if isinstance(init, Sequence) else [init]
+    options, band, reach = _off_chart(fit_options, depth, lenses)
     fit = fit_lens(sharp, depth, targets, init, **options)
     t = fit.treatment
     if t is None:
@@ -401,28 +401,22 @@ def _fit_chart(sharp, depth, targets, init, fit_options: dict) -> FitResult:
     return dataclasses.replace(fit, treatment=wider)
 
 
-def _band_reach(depth, lenses: Sequence[ThinLens]) -> float:
-    """How far (px) from the chart's outline `_off_chart` leaves pixels out: the reach of light
-    from off the chart (`_background_reach`), halved while it would leave under half the
-    chart's pixels."""
-    holes = ~np.isfinite(depth)
-    reach, chart = _background_reach(depth, lenses), int(np.sum(~holes))
-    while reach >= 1 and np.sum(~near_holes(holes, reach)) < _KEEP * chart:
-        reach /= 2
-    return reach
-
-
-def _off_chart(fit_options: dict, depth, reach: float) -> tuple[dict, int]:
-    """`fit_options` with the photo pixels within `reach` (`_band_reach`) of the chart's
-    outline weighted 0 (times the caller's `weight`), and how many of them are on the chart:
-    `fit_lens` leaves out those its circles on the chart reach from a hole, and the
-    background's, beyond the chart, are larger."""
+def _off_chart(fit_options: dict, depth, lenses: Sequence[ThinLens]) -> tuple[dict, int, float]:
+    """`(options, band, reach)`: `fit_options` with the photo pixels within `reach` of the
+    chart's outline weighted 0 (times the caller's `weight`), and how many of them are on the
+    chart. `reach` is that of light from off the chart (`_background_reach`): `fit_lens` leaves
+    out the pixels its circles on the chart reach from a hole, and the background's, beyond the
+    chart, are larger; halved while it would leave under half the chart's pixels."""
     on = np.isfinite(depth)
+    reach = _background_reach(depth, lenses)
     near = near_holes(~on, reach)
+    while reach >= 1 and np.sum(on & ~near) < _KEEP * np.sum(on):
+        reach /= 2
+        near = near_holes(~on, reach)
     weight = (~near).astype(np.float32)
     if fit_options.get("weight") is not None:
         weight = weight * np.asarray(fit_options["weight"], np.float32)
-    return {**fit_options, "weight": weight}, int(np.sum(near & on))
+    return {**fit_options, "weight": weight}, int(np.sum(near & on)), reach
 
 
 def _lens_at(fit: FitResult, k: int, scale: float) -> ThinLens:
