@@ -602,12 +602,18 @@ def test_off_chart_light_is_left_out(tilted):
     assert 0.5 <= kept.sum() / np.sum(~holes) < 1
 
 
-@pytest.mark.slow  # 23 s on a shared 2-core machine
-def test_calibrate_end_to_end(chart, tilted):
+@pytest.mark.slow  # 23 s each on a shared 2-core machine
+@pytest.mark.parametrize("given", ["pixel_pitch", "focal_length"])
+def test_calibrate_end_to_end(chart, tilted, given):
     """A photo of the tilted chart through f/2 focused at 0.5 m (circles up to 2.2 px, noise
     0.002): the focus distance within 2 %, the blur scale within 5 %, the camera's focal length
-    in pixels from the markers within 3 %. The fit's choices are fixed (a photo from
-    `jaxdof.render` needs none of them) to keep the test short."""
+    in pixels from the markers within 3 %, or, with the focal length given too, the image
+    distance's at the fitted focus (`_focused`, within `_tuning.CHART_REFOCUS`) with the focus's
+    error in its own. The fit's choices are fixed (a photo from `jaxdof.render` needs none of
+    them) to keep the test short."""
+    from jaxdof import _tuning
+    from jaxdof._chart._calibrate import _focal_px, _focused
+
     c, raster = chart
     _, _, scene = tilted
     truth = _lens(2.0, 0.5)
@@ -620,12 +626,27 @@ def test_calibrate_end_to_end(chart, tilted):
         footprint=False,
         edge_weight=False,
     )
-    cal = jaxdof.calibrate(photo, c, raster, pixel_pitch=float(truth.pixel_pitch), **options)
-    assert cal.intrinsics == "homographies"
-    assert cal.focal_px == pytest.approx(F_PX, rel=0.03)
-    assert abs(cal.focal_px - F_PX) < 3 * cal.focal_px_stderr
+    pitch = float(truth.pixel_pitch)
+    if given == "focal_length":
+        options["focal_length"] = FOCAL
+    cal = jaxdof.calibrate(photo, c, raster, pixel_pitch=pitch, **options)
     assert cal.fit.success
     d_f = float(cal.lens.focus_distance)
+    if given == "focal_length":
+        assert cal.intrinsics == "focal length and pixel pitch"
+        assert cal.focal_px == pytest.approx(F_PX, rel=0.01)
+        # a fixed point: the f_px that the fitted focus gives is the one the scene was made with
+        at_focus = _focal_px(cal.views[0], *_focused((FOCAL, pitch, None), d_f, cal.focal_px))
+        assert abs(at_focus / cal.focal_px - 1) <= _tuning.CHART_REFOCUS
+        # sigma(f_px) = f_px s sigma(P), and the reported sigma(P) holds it: times
+        # sqrt(1 + (s / d_f)^2) (`_with_scale_error`)
+        s = cal.focal_px * pitch
+        power_se = float(cal.fit.focus_power_stderr) / math.hypot(1, s / d_f)
+        assert cal.focal_px_stderr == pytest.approx(cal.focal_px * s * power_se, rel=1e-6)
+    else:
+        assert cal.intrinsics == "homographies"
+        assert cal.focal_px == pytest.approx(F_PX, rel=0.03)
+        assert abs(cal.focal_px - F_PX) < 3 * cal.focal_px_stderr
     assert d_f == pytest.approx(0.5, rel=0.02)
     # the focus distance's error holds the depth scale's, the focal length's in pixels
     se = float(cal.fit.stderr["focus_distance"])

@@ -57,8 +57,9 @@ class ChartCalibration:
     - `poses`: the chart's pose in each photo (`ChartPose`; `tilt` in degrees).
     - `camera`: the intrinsic matrix `K` (pixels) used.
     - `focal_px`: its focal length (pixels): the lens-to-sensor distance over the pixel pitch.
-    - `focal_px_stderr`: its standard error (pixels) where found from the homographies (from
-      corners placed to `_tuning.CHART_CORNER_PX`), else 0 (taken as given).
+    - `focal_px_stderr`: its standard error (pixels): from the corners placed to
+      `_tuning.CHART_CORNER_PX` where found from the homographies; from the fitted focus's where
+      taken at it (the focal length and the pitch given, not the focus distance); else 0.
     - `intrinsics`: where `focal_px` came from: `"focal length and pixel pitch"` or
       `"homographies"`.
     - `init`: the starting lens (one per photo).
@@ -154,8 +155,9 @@ def calibrate(
     pixels and the principal point at the centre), unless the focal length `f` and the pitch
     `p` are known: then `f_px = s / p` with the thin lens's `s = f d / (d - f)` at the focus
     distance `d`: EXIF's, else the chart centre's distance for the first fit (the pose at
-    `f_px` gives it: a fixed point) and the first fit's focus distance for the fit after the
-    alignment (`align`). Each photo's pose (`chart_pose`), the
+    `f_px` gives it: a fixed point) and the fitted focus distance for the fit after the
+    alignment (`align`; made again where that fit's focus moves `f_px` by over
+    `_tuning.CHART_REFOCUS`). Each photo's pose (`chart_pose`), the
     first photo's chart image and z-depth (`chart_scene`; off the chart: holes, left out of the
     fit with the pixels their circles reach), then `fit_lens` on the photos. The starting lens:
     EXIF's focal length, f-number and focus distance where recorded, else focus at the chart's
@@ -295,16 +297,44 @@ def _aligned_fit(
         for k, (p, v) in enumerate(zip(photos, found))
     ]
     found, moved = [a[0] for a in aligned], tuple(a[1] for a in aligned)
-    geometry = _Geometry.of(found, *_focused(camera, _first_focus(fit), geometry.f_px))
-    stage_note("building the aligned chart's image and depth; fitting again")
-    sharp, depth = geometry.scene(chart, image, photos[0])
-    lenses = [_lens_at(fit, k, float(np.nanmedian(depth)) / median) for k in range(len(photos))]
     targets = photos[0] if len(photos) == 1 else np.stack(photos)
     # One start and the first fit's choices: its starts found the basin, its photo chose the
     # treatment and the nuisances, and the chart moved by tenths of a pixel.
     options = {"starts": 1, **_as_decided(fit), **fit_options}
-    again = _fit_chart(sharp, depth, targets, lenses if len(photos) > 1 else lenses[0], options)
-    return found, moved, geometry, depth, _told_as(again, fit)
+
+    def fit_at(geometry: _Geometry, start: FitResult, median: float):
+        sharp, depth = geometry.scene(chart, image, photos[0])
+        scale = float(np.nanmedian(depth)) / median
+        lenses = [_lens_at(start, k, scale) for k in range(len(photos))]
+        init = lenses if len(photos) > 1 else lenses[0]
+        return depth, _fit_chart(sharp, depth, targets, init, options)
+
+    geometry = _Geometry.of(found, *_focused(camera, _first_focus(fit), geometry.f_px))
+    stage_note("building the aligned chart's image and depth; fitting again")
+    depth, again = fit_at(geometry, fit, median)
+    # `f_px` was taken at the first fit's focus (`_focused`); where the focus found now moves it
+    # (a first fit far off: `f_px` 1.1 % off moved a far chart's focus 1.9 %), once more at it.
+    refocused = _Geometry.of(found, *_focused(camera, _first_focus(again), geometry.f_px))
+    if abs(refocused.f_px / geometry.f_px - 1) > _tuning.CHART_REFOCUS:
+        stage_note("the focal length in pixels at the fitted focus; fitting again")
+        median = float(np.nanmedian(depth))
+        geometry = refocused
+        depth, again = fit_at(geometry, again, median)
+    return found, moved, _focus_share(geometry, camera, again), depth, _told_as(again, fit)
+
+
+def _focus_share(geometry: _Geometry, camera, fit: FitResult) -> _Geometry:
+    """`geometry` with the standard error of `f_px` that the fitted focus gives it, where `f_px`
+    was taken at that focus (`_focused`: the focal length and the pitch given, not the focus):
+    `f_px = 1 / ((1 / f - P) p)`, so `sigma(f_px) = f_px s sigma(P)` with `s = f_px p`."""
+    f, pitch, focus = camera
+    if geometry.source != _GIVEN or focus is not None:
+        return geometry
+    power_se = float(np.ravel(np.asarray(fit.focus_power_stderr))[0])
+    if not math.isfinite(power_se):
+        return geometry
+    se = geometry.f_px * (geometry.f_px * pitch) * power_se
+    return dataclasses.replace(geometry, f_px_se=math.hypot(geometry.f_px_se, se))
 
 
 def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: int, scene=None):

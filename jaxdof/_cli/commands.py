@@ -851,7 +851,7 @@ def run_calibrate(args) -> int:
                 f"deg, chart at {entry['distance_m']:.3g} m"
             )
         near, far = cal.depth_range
-        pm = f" +- {cal.focal_px_stderr:.1f}" if cal.focal_px_stderr > 0 else ""
+        pm = f" +- {cal.focal_px_stderr:.2g}" if cal.focal_px_stderr > 0 else ""
         print(
             f"camera: focal length {cal.focal_px:.1f}{pm} px (from the {cal.intrinsics}), chart "
             f"depths {near:.3g}-{far:.3g} m"
