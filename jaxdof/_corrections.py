@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
-from scipy import interpolate, ndimage
+from scipy import interpolate
 
 from . import _footprint_table
 from ._custom_types import Image, ImageLike, RadiusLike
@@ -119,31 +119,23 @@ def edge_distance(depth: ArrayLike, *, jump: float = 0.03, limit: float = 64.0) 
     return edge_distance_to(depth_edges(depth, jump=jump), limit=limit)
 
 
-_EDT_BAND_PIXELS = 2**22  # pixels per band of the distance transform
-
-
 def edge_distance_to(edges: np.ndarray, *, limit: float) -> np.ndarray:
     """Euclidean distance (px, pixel centre to pixel centre) from every pixel to the nearest `True`
     pixel of the `(H, W)` mask `edges`, capped at `limit`; float32.
 
-    The exact Euclidean distance transform (`scipy.ndimage.distance_transform_edt`), linear in
-    the pixels whatever the number of edge pixels.
+    The exact Euclidean distance transform of Felzenszwalb and Huttenlocher ("Distance
+    transforms of sampled functions", 2012), as OpenCV's `distanceTransform` with
+    `DIST_MASK_PRECISE` computes it: linear in the pixels, in float32 (a 24 MP frame in 0.4 s,
+    where `scipy.ndimage.distance_transform_edt`'s float64 took 3-7 s).
     """
+    import cv2  # (as the chart's modules: not at `import jaxdof`)
+
     edges = np.asarray(edges, bool)
-    out = np.full(edges.shape, float(limit), np.float32)
     if not edges.any():
-        return out
-    # In bands of rows with a halo of `limit` rows (distances beyond it are capped anyway), so
-    # that the transform's float64 and index temporaries stay small on a large frame.
-    halo = int(math.ceil(limit))
-    step = max(_EDT_BAND_PIXELS // max(edges.shape[1], 1), 1)
-    for top in range(0, edges.shape[0], step):
-        lo, hi = max(top - halo, 0), min(top + step + halo, edges.shape[0])
-        band = edges[lo:hi]
-        if band.any():
-            dist = np.asarray(ndimage.distance_transform_edt(~band))[top - lo : top - lo + step]
-            out[top : top + step] = np.minimum(dist, limit)
-    return out
+        return np.full(edges.shape, float(limit), np.float32)
+    far = np.ascontiguousarray(~edges, np.uint8)  # the transform measures to its zeros
+    dist = cv2.distanceTransform(far, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.minimum(dist, np.float32(limit))
 
 
 def edge_weight(depth: ArrayLike, *, width: float, jump: float = 0.03) -> np.ndarray:

@@ -149,17 +149,25 @@ def test_fit_lens_refuses_a_bad_edge_weight():
             jaxdof.fit_lens(image, depth, image, lens, edge_weight=bad)
 
 
-def test_edge_distance_in_bands_is_the_whole_frames(monkeypatch):
+def test_edge_distance_is_exact():
+    """The capped Euclidean distance to the nearest edge pixel, against brute force (a few
+    edges) and scipy's exact transform (a large hole: distances to hundreds of pixels, where a
+    float32 sum of squares would first lose integers)."""
+    from scipy import ndimage
+
     rng = np.random.default_rng(0)
     edges = rng.uniform(size=(120, 50)) < 0.003
     whole = _corrections.edge_distance_to(edges, limit=9.0)
-    monkeypatch.setattr(_corrections, "_EDT_BAND_PIXELS", 50 * 7)  # bands of 7 rows
-    np.testing.assert_array_equal(_corrections.edge_distance_to(edges, limit=9.0), whole)
+    assert whole.dtype == np.float32
     brute = np.full(edges.shape, 9.0)
     for y, x in zip(*np.nonzero(edges)):
         yy, xx = np.mgrid[0:120, 0:50]
         brute = np.minimum(brute, np.hypot(yy - y, xx - x))
     np.testing.assert_allclose(whole, brute, rtol=1e-6)
+    holes = np.ones((700, 900), bool)
+    holes[100:650, 50:800] = rng.uniform(size=(550, 750)) < 1e-4
+    exact = np.minimum(ndimage.distance_transform_edt(~holes), 400.0)
+    np.testing.assert_allclose(_corrections.edge_distance_to(holes, limit=400.0), exact, rtol=1e-6)
 
 
 def test_render_auto_models_what_the_scene_needs(caplog):

@@ -44,6 +44,7 @@ _SAME_PX, _SAME_SHARE = 2.0, 0.01
 _F_NUMBER = 4.0  # the starting f-number when EXIF has none
 _KEEP = 0.5  # the share of the chart's pixels that the background's band leaves at least
 _GIVEN = "focal length and pixel pitch"
+_SPLINE_PAD = 16  # px rendered beyond the light the alignment's pixels see (`_aligned`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -344,10 +345,22 @@ def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: 
         chart, image, geometry.poses[k], geometry.camera, photo.shape
     )
     lens = jax.tree_util.tree_map(lambda x: x[k], fit.lenses)
-    template = np.asarray(render(sharp, depth, lens, fill_holes=True))
-    at = geometry.poses[k].homography(geometry.camera)
     reach = _background_reach(depth, [lens])
-    return align_view(photo, view, template, at, usable_pixels(depth, reach))
+    usable = usable_pixels(depth, reach)
+    # Rendered where the alignment looks: the usable pixels' light comes from within `reach`
+    # of them (no hole's reaches them), and the template's cubic spline, whose prefilter decays
+    # by 0.27 a pixel, sees nothing of the zeros 16 px further out.
+    template = np.zeros(depth.shape, np.float32)
+    rows, cols = np.nonzero(usable.any(axis=1))[0], np.nonzero(usable.any(axis=0))[0]
+    if rows.size:
+        pad = math.ceil(reach) + _SPLINE_PAD
+        box = (
+            slice(max(rows[0] - pad, 0), rows[-1] + pad + 1),
+            slice(max(cols[0] - pad, 0), cols[-1] + pad + 1),
+        )
+        template[box] = np.asarray(render(sharp[box], depth[box], lens, fill_holes=True))
+    at = geometry.poses[k].homography(geometry.camera)
+    return align_view(photo, view, template, at, usable)
 
 
 def _first_focus(fit: FitResult) -> float:
