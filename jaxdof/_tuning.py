@@ -396,9 +396,8 @@ CHART_CORNER_PX = 0.5
 #: With the focal length and the pixel pitch given and no focus distance, the chart's camera
 #: takes `f_px = s / p` at the fitted focus (`_chart._calibrate._focused`); where the fit after
 #: the alignment moves `f_px` by more than this share, the scene and the fit are made once more
-#: at the new one. The focus distance moves by about 1.6 times `f_px`'s relative error (the
-#: held-out `print_far` of `fits/chart.py`, linear: `f_px` +1.14 %, focus +1.87 %), so this
-#: keeps the error it leaves near a tenth of the 2 % goal; set from that ratio, not tuned.
+#: at the new one. The chart's depth, and with it the focus distance, scales with `f_px`, so
+#: this leaves the focus distance about 0.1 %, a twentieth of the 2 % goal; set so, not tuned.
 CHART_REFOCUS = 1e-3
 
 _NAMES = (

@@ -314,7 +314,7 @@ def _aligned_fit(
     stage_note("building the aligned chart's image and depth; fitting again")
     depth, again = fit_at(geometry, fit, median)
     # `f_px` was taken at the first fit's focus (`_focused`); where the focus found now moves it
-    # (a first fit far off: `f_px` 1.1 % off moved a far chart's focus 1.9 %), once more at it.
+    # (a first fit far off), once more at the new one.
     refocused = _Geometry.of(found, *_focused(camera, _first_focus(again), geometry.f_px))
     if abs(refocused.f_px / geometry.f_px - 1) > _tuning.CHART_REFOCUS:
         stage_note("the focal length in pixels at the fitted focus; fitting again")
