@@ -459,15 +459,7 @@ def read_depth(
 
     Raises `InputError` for several different channels, or a depth map without any data.
     """
-    raw = _read_raw(path, "depth", option)
-    if raw.ndim == 3:
-        if raw.shape[-1] in (2, 4):  # grey+alpha / RGBA: drop alpha
-            raw = raw[..., :-1]
-        if not np.all(raw == raw[..., :1]):
-            raise InputError(
-                f"{path}: depth has {raw.shape[-1]} different channels ({option}); a depth map has one"
-            )
-        raw = raw[..., 0]
+    raw = _one_channel(_read_raw(path, "depth", option), path, option)
     if zbuffer and inverse:
         raise InputError("--zbuffer and --inverse-depth cannot be combined")
     if raw.dtype.kind == "f":
@@ -489,20 +481,7 @@ def read_depth(
         raise InputError(f"{path}: {raw.dtype} depth is not supported ({option})")
 
     if zbuffer:
-        if scale is not None:
-            raise InputError("--depth-scale cannot be combined with --zbuffer (use --near/--far)")
-        if near is None or far is None:
-            raise InputError("--zbuffer needs both --near and --far (clip planes, e.g. 0.1m 100m)")
-        if not 0 < near < far:
-            raise InputError(f"--near {near} m and --far {far} m must satisfy 0 < near < far")
-        if values.min() < 0 or values.max() > 1:
-            raise InputError(
-                f"{path}: depth-buffer values must lie in [0, 1] (found {values.min():g} .. "
-                f"{values.max():g}) ({option})"
-            )
-        import jaxdof
-
-        depth = np.asarray(jaxdof.linearize_depth(values, near, far), dtype=np.float64)
+        depth = _from_zbuffer(values, path, scale, near, far, option)
     else:
         if near is not None or far is not None:
             raise InputError("--near/--far only apply with --zbuffer")
@@ -524,6 +503,37 @@ def read_depth(
     if np.all(np.isnan(depth)):
         raise InputError(f"{path}: depth has no data: every pixel is 0, negative or NaN ({option})")
     return np.ascontiguousarray(depth, dtype=np.float32)
+
+
+def _one_channel(raw: np.ndarray, path: str, option: str) -> np.ndarray:
+    """A depth file's samples `(H, W)`: an alpha channel dropped, equal channels made one."""
+    if raw.ndim != 3:
+        return raw
+    if raw.shape[-1] in (2, 4):  # grey+alpha / RGBA: drop alpha
+        raw = raw[..., :-1]
+    if not np.all(raw == raw[..., :1]):
+        raise InputError(
+            f"{path}: depth has {raw.shape[-1]} different channels ({option}); a depth map has one"
+        )
+    return raw[..., 0]
+
+
+def _from_zbuffer(values, path: str, scale, near, far, option: str) -> np.ndarray:
+    """z-depth (m, float64) from OpenGL window depths `values` in `[0, 1]` and the clip planes."""
+    if scale is not None:
+        raise InputError("--depth-scale cannot be combined with --zbuffer (use --near/--far)")
+    if near is None or far is None:
+        raise InputError("--zbuffer needs both --near and --far (clip planes, e.g. 0.1m 100m)")
+    if not 0 < near < far:
+        raise InputError(f"--near {near} m and --far {far} m must satisfy 0 < near < far")
+    if values.min() < 0 or values.max() > 1:
+        raise InputError(
+            f"{path}: depth-buffer values must lie in [0, 1] (found {values.min():g} .. "
+            f"{values.max():g}) ({option})"
+        )
+    import jaxdof
+
+    return np.asarray(jaxdof.linearize_depth(values, near, far), dtype=np.float64)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -49,7 +49,7 @@ from collections.abc import Iterator
 #: gather below it. Read by `jaxdof/_filters/spans.py` (`exact_soft_filter`, and through it
 #: `coc_filter`, `render` and `fit_lens`).
 #:
-#: Measured for issue 19 (2026-12-01, `python fits/tune.py --only SPANS_MIN_RADIUS --rounds 9`;
+#: Measured 2026-12-01 (`python fits/tune.py --only SPANS_MIN_RADIUS --rounds 9`;
 #: 2-core AMD EPYC shared with other jobs, load average 4-12; jax 0.10.2, git 7ae13c6): 256^2 RGB
 #: float32, radii uniform in [R/2, R], jitted forward, medians of 9 interleaved rounds of wall time.
 #: spans / dense time, three runs:
@@ -68,7 +68,7 @@ from collections.abc import Iterator
 #:
 #: History: 12 from `python fits/bench_speed.py --paths-only` (commit bbb9139, 2026-11-23; 256^2
 #: RGB, radii uniform in [0, R], CPU time: spans lost at R = 8 and won forward and fwd+grad from
-#: 12 on), measured before the dense gather became ~13x faster. Issue 19 then reported, on a quiet
+#: 12 on), measured before the dense gather became ~13x faster. Later, on a quiet
 #: 2-core machine (256^2, radii in [R/2, R], forward, dense vs spans): R = 12: 12 vs 48 ms, 16: 19
 #: vs 69, 32: 68 vs 151, 48: 190 vs 165, 64: 329 vs 211 (R = 16's default 3.7x the faster path).
 SPANS_MIN_RADIUS = 40.0
@@ -84,8 +84,8 @@ SPANS_MIN_RADIUS = 40.0
 #: 1.3-1.6 at 8, 0.7-1.1 at 12, 0.5-0.8 at 16; n = 64: 0.7-1.3 at 8, 0.5-0.8 at 12. (Also measured
 #: before the dense gather's speed-up; `fits/tune.py` re-measures it.)
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 256^2, spans / dense: n = 4: 1.69 at R = 16, 1.10 at 20, 1.03 at 24, 0.78 at
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 256^2, spans / dense: n = 4: 1.69 at R = 16, 1.10 at 20, 1.03 at 24, 0.78 at
 #: 32; n = 16: 1.13 at 12, 0.82 at 16, 0.91 at 20; n = 64: 1.17 at 12, 0.88 at 16, 0.65 at 20. Read
 #: off: {4: 24 (24 a tie), 16: 14, inf: 16}.
 JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, math.inf: 10.0}
@@ -100,8 +100,8 @@ JITTER_SPANS_MIN_RADIUS = {4: 24.0, 16: 14.0, math.inf: 10.0}
 #: 0.67 at 24. At 48^2 the spans win earlier (n = 2-4: 0.65-0.78 at R = 24; n = 8: 0.52 at 16): the
 #: thresholds follow the larger frame.
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 256^2, spans / dense: n = 4: 2.28 at R = 32, 1.32 at 40, 1.17 at 48, 0.79 at
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 256^2, spans / dense: n = 4: 2.28 at R = 32, 1.32 at 40, 1.17 at 48, 0.79 at
 #: 64; n = 8: 3.09 at 24, 1.63 at 32, 1.27 at 48, 0.65 at 64; n = 16: 1.89 at 20, 1.19 at 32, 0.91
 #: at 40; n = 32: 1.86 at 16, 1.12 at 24, 0.79 at 32. Read off: {4: 64, 8: 64, 16: 40, inf: 32}: the
 #: dense gather's speed-up moved every crossover up; the old table takes spans up to 3.1x slower.
@@ -118,8 +118,8 @@ SUPERSAMPLE_SPANS_MIN_RADIUS = {4: 32.0, 8: 24.0, 16: 20.0, math.inf: 16.0}
 #: Measured in commit 2547ad6 (2026-11-23), 2-core CPU, 256^2 RGB float32, R = 8, one run, compare
 #: / binary-search time: 0.34x at n = 4, 0.37x at 16, 0.44x at 32, 1.36x at 64.
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): compare / search 0.45 at n = 4, 0.36 at 16, 1.03 at 32, 1.48 at 64: 32 stays.
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): compare / search 0.45 at n = 4, 0.36 at 16, 1.03 at 32, 1.48 at 64: 32 stays.
 COMPARE_ALL_MAX = 32
 
 #: Up to this many sub-rows per pixel supersample's count writes its rows out (one fused
@@ -129,8 +129,8 @@ COMPARE_ALL_MAX = 32
 #: Measured in commit 2b49304 (2026-11-23), CPU, 32^2, R = 6: n = 64 written out compiled ~10x
 #: slower (15.6 s against 1.5 s before the fused counts; 1.1 s with the loop).
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 128^2, R = 4, written out / loop, run time: 1.32 at n = 4, 1.67 at 8, 1.36 at
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 128^2, R = 4, written out / loop, run time: 1.32 at n = 4, 1.67 at 8, 1.36 at
 #: 16, 29 at 32, 83 at 64; compile 1.3 / 1.2 s at 4, 4.8 / 1.8 s at 16, 11.1 / 2.1 s at 64. Read
 #: off: 0 (the loop at every n).
 UNROLL_ROWS = 16
@@ -142,8 +142,8 @@ UNROLL_ROWS = 16
 #: Measured in commit 3898a3a (2026-11-23), CPU, 256^2 RGB float32, three planes, R = 8: written out
 #: 0.8x the time of the scan. (Only three levels were timed; 8 bounds the live spectra.)
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 256^2, R = 8, written out / scan 0.84 at L = 3, 0.89 at 8, 1.34 at 12, 0.88
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 256^2, R = 8, written out / scan 0.84 at L = 3, 0.89 at 8, 1.34 at 12, 0.88
 #: at 16 (compile 5-7 s against 0.5 s): 8 stays.
 UNROLL_LEVELS = 8
 
@@ -157,8 +157,8 @@ UNROLL_LEVELS = 8
 #: tap written out with its own look-up; with 37 taps or more the written-out program was slower
 #: than the loop.
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 256^2, written out / scanned 0.57 at 21 taps, 1.00 at 25, 6.3 at 37 and 45:
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 256^2, written out / scanned 0.57 at 21 taps, 1.00 at 25, 6.3 at 37 and 45:
 #: 25 stays.
 FUSED_MAX_TAPS = 25
 
@@ -169,8 +169,8 @@ FUSED_MAX_TAPS = 25
 #: Measured in commit 6f8a2aa (2026-11-23), CPU, R = 2, 512^2 and 1024^2, one run: the chain takes
 #: 0.45-0.7x the time of `take` for L = 3 and 8, 0.9x for L = 16.
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 512^2, R = 2, select / take 0.94 at L = 3 and 8, 1.22 at 16, 0.93 at 24, 1.01
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 512^2, R = 2, select / take 0.94 at L = 3 and 8, 1.22 at 16, 0.93 at 24, 1.01
 #: at 32 (CPU time 0.88-1.06): no difference above the noise.
 SELECT_MAX_LEVELS = 16
 
@@ -183,8 +183,8 @@ SELECT_MAX_LEVELS = 16
 #: 20 ms for `np.unique`'s argsort and 8 ms for `np.searchsorted`; auto's inspection of a 1024^2
 #: three-plane map 25.6 -> 9.5 ms (tabulated, R = 2), 31.4 -> 13.2 ms (layered, R = 8).
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 1024^2, compare / argsort 0.11 at L = 3, 0.45 at 16, 0.64 at 24, 0.66 at 32,
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 1024^2, compare / argsort 0.11 at L = 3, 0.45 at 16, 0.64 at 24, 0.66 at 32,
 #: 0.90 at 48, 1.00 at 64. Read off: 48.
 COMPARE_MAX_LEVELS = 16
 
@@ -202,8 +202,8 @@ COMPARE_MAX_LEVELS = 16
 #: L = 4-16; R = 6 (137 taps): 1.04 (1.20) at L = 2, 0.44-0.65 (0.66-1.04) at L = 4-16; R = 8
 #: (241 taps): 1.67 (1.70) at L = 2, 0.88 (1.06) at L = 8, 1.04 (1.83) at L = 16.
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 256^2, R = 2-16, L = 2-16, direct / FFT: R = 2: 0.12-0.34 at L = 2-8, 1.53 at
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 256^2, R = 2-16, L = 2-16, direct / FFT: R = 2: 0.12-0.34 at L = 2-8, 1.53 at
 #: 16; R = 4: 0.18-0.40; R = 8: 0.42-0.76 at L = 2-8, 1.21 at 16; R = 12: 1.39 at L = 2, 0.60 at 8,
 #: 1.92 at 16; R = 16: 1.47-2.79. The rule with 56 errs at 5 of 20 points (worst 2.4x, R = 8,
 #: L = 2), with 170 at 3 (worst 1.9x): the direct sum got cheaper, and FFTs of 16 levels (scanned)
@@ -218,8 +218,8 @@ FFT_LEVEL_COST_IN_TAPS = 56.0
 #: at 256 x 256 one layer cost ~60 taps (R = 8: 4 layers 9.1 ms, 241 taps 10.0 ms; R = 24:
 #: 10.3 ms against 71 ms), at 64 x 64 ~70 taps (R = 8: 0.79 ms against 0.66 ms).
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): FFT / tabulated at 64^2: 1.45 at R = 4, 0.51 at 8, 0.27 at 16, 0.17 at 24; at
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): FFT / tabulated at 64^2: 1.45 at R = 4, 0.51 at 8, 0.27 at 16, 0.17 at 24; at
 #: 256^2: 1.84, 2.51 (CPU time 0.90), 0.23, 0.17: a layer costs 25-82 taps (geometric mean 54), and
 #: R = 8 falls on either side by frame: 64 stays.
 LAYER_COST_IN_TAPS = 64.0
@@ -236,8 +236,8 @@ MAX_LAYERS = 32
 #: small against the image"); `fits/tune.py` measures the tabulated gather against the soft filter
 #: as the fraction grows. Read by `jaxdof/_filters/auto.py` (`choose_method`).
 #:
-#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted, see
-#: issue 19's report): 256^2, R = 8, tabulated / soft 0.55 at L = HW/256, 1.00 at HW/32, 1.21 at
+#: Re-measured 2026-12-01 (`python fits/tune.py`, one run, load average 6-14; not adopted:
+#: one loaded run): 256^2, R = 8, tabulated / soft 0.55 at L = HW/256, 1.00 at HW/32, 1.21 at
 #: HW/8, 1.25 at HW/2, 1.67 at HW. Read off: 1 / 32.
 TABLE_LEVELS_PER_PIXEL = 1 / 8
 
@@ -257,7 +257,7 @@ TABLE_LEVELS_PER_PIXEL = 1 / 8
 #: besides. Read by `jaxdof/_render.py` (`estimate_memory`) and through it by the CLI's
 #: `render --memory`.
 #:
-#: Measured for issue 22 (2026-12-02): peak resident memory (`ru_maxrss`) of one `jaxdof.render`
+#: Measured 2026-12-02: peak resident memory (`ru_maxrss`) of one `jaxdof.render`
 #: call in a fresh process, minus the process's before the call (JAX imported, inputs made), on
 #: a 2-core AMD EPYC shared with other jobs, jax 0.10.2, float32, a random RGB image, depth 1-10 m,
 #: largest circle `R`. Whole frames with `jaxdof.retain_freed_memory()` (as the CLI renders a
@@ -308,7 +308,7 @@ RENDER_MEMORY = {
 #: float32). Reading and writing the files peak on their own, before and after the render
 #: (`_io`'s float64 conversions: not counted here).
 #:
-#: Measured for issue 22 (2026-12-02), `jaxdof render` of a 6000 x 4000 RGB float32 `.npy` frame
+#: Measured 2026-12-02, `jaxdof render` of a 6000 x 4000 RGB float32 `.npy` frame
 #: and its depth, resident memory sampled at each stage: 173 MB after the imports, 753 MB when
 #: the render starts (24 bytes per pixel over the imports).
 CLI_MEMORY = {"process": 200 * 2**20, "per_pixel": 24.0}
@@ -321,7 +321,7 @@ CLI_MEMORY = {"process": 200 * 2**20, "per_pixel": 24.0}
 #: rendered in the solve, per photo (the whole frame, or the tiles with their halos: at most 4x the
 #: tile budget).
 #:
-#: Measured for issue 22 (2026-12-02), `fits/fullres.py` (one photo, RGB, soft, windows of 8-16 px,
+#: Measured 2026-12-02, `fits/fullres.py` (one photo, RGB, soft, windows of 8-16 px,
 #: peak `ru_maxrss` of `jaxdof fit` in a fresh process, minus what the CLI holds after reading,
 #: `CLI_MEMORY` plus 12 bytes per photo pixel): whole frame 1.5 MP 1.24-1.27 GiB, 6 MP 3.81-4.23 GiB
 #: (two runs; the larger gives 627 bytes per fitted pixel beside the intercept); on tiles of 2^17
@@ -346,7 +346,7 @@ FIT_MEMORY = {"fixed": 0.4 * 2**30, "frame": 75.0, "fitted": 640.0}
 #: the correction and came back `inconsistent` (K -0.37 %, N 0.35 % off, se 0.25 %). The
 #: correction now costs 0.03-0.8x the soft filter it feeds (`fits/results/footprint_cost.md`) and
 #: the default fit of an edge-free scene 1.07-1.09x the plain one (`fits/treatment_cost.py`).
-#: Before (issue 21, `fits/treatments.py`, tuning half): without it (`plain`) slant's K errors were
+#: Before (`fits/treatments.py`, tuning half): without it (`plain`) slant's K errors were
 #: -5.0, -1.7, -1.3, -1.3 % (median starting circles 0.8-2.8 px), with it every slant lens within
 #: 1.6 %; 4 of the 48 ray-traced fits had median circles over 5.8 px (all within the goal).
 TREATMENT_FOOTPRINT_BELOW = 40.0

@@ -177,17 +177,8 @@ def calibrate(
     range: it says the tilt found), the photos show it in different places (not one scene), or
     the pixel pitch is unknown (give `pixel_pitch`, or `focal_length`, or a sensor width).
     """
-    many = not (isinstance(photos, np.ndarray) and photos.ndim in (2, 3))
-    photos = [np.asarray(p) for p in photos] if many else [np.asarray(photos)]
-    if not photos:
-        raise ValueError("calibrate needs at least one photo")
-    shape = photos[0].shape
-    if any(p.shape != shape for p in photos):
-        raise ValueError(f"the photos differ in shape: {[p.shape for p in photos]}")
-    n = len(photos)
-    exifs = list(exif) if isinstance(exif, Sequence) else [exif] * n
-    if len(exifs) != n:
-        raise ValueError(f"exif: {len(exifs)} given for {n} photos")
+    photos, exifs = _photos_and_exifs(photos, exif)
+    shape, n = photos[0].shape, len(photos)
     found = (
         list(views) if views is not None else [detect_chart(p, chart, image=image) for p in photos]
     )
@@ -238,6 +229,20 @@ def calibrate(
         depth_range=(float(np.nanmin(depth)), float(np.nanmax(depth))),
         aligned_px=moved,
     )
+
+
+def _photos_and_exifs(photos, exif) -> tuple[list[np.ndarray], list[ExifLens | None]]:
+    """`calibrate`'s photos as a list of arrays of one shape, and one EXIF entry per photo."""
+    many = not (isinstance(photos, np.ndarray) and photos.ndim in (2, 3))
+    photos = [np.asarray(p) for p in photos] if many else [np.asarray(photos)]
+    if not photos:
+        raise ValueError("calibrate needs at least one photo")
+    if any(p.shape != photos[0].shape for p in photos):
+        raise ValueError(f"the photos differ in shape: {[p.shape for p in photos]}")
+    exifs = list(exif) if isinstance(exif, Sequence) else [exif] * len(photos)
+    if len(exifs) != len(photos):
+        raise ValueError(f"exif: {len(exifs)} given for {len(photos)} photos")
+    return photos, exifs
 
 
 @dataclasses.dataclass(frozen=True)

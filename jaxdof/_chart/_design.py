@@ -138,35 +138,13 @@ def make_chart(
     """
     cv2 = _cv2()
     if monitor:
-        if screen_px is None or screen_width_m is None:
-            raise ValueError(
-                "a monitor chart needs screen_px=(width, height) in pixels and screen_width_m"
-            )
-        nx, ny = (int(v) for v in screen_px)
-        if nx < 64 or ny < 64 or not screen_width_m > 0:
-            raise ValueError(f"bad screen: {screen_px=} (>= 64 px each), {screen_width_m=} m")
-        pitch = float(screen_width_m) / nx
+        nx, ny, pitch, margin = _screen(screen_px, screen_width_m)
         dpi = _INCH / pitch
-        margin = 0
     else:
-        if not (width_m > 0 and height_m > 0 and dpi > 0):
-            raise ValueError(
-                f"the chart's size and dpi must be positive, got {width_m=}, {height_m=}, {dpi=}"
-            )
-        pitch = _INCH / dpi
-        nx, ny = round(width_m / pitch), round(height_m / pitch)
-        margin = round(_PAPER_MARGIN / pitch)
-    if not hasattr(cv2.aruco, dictionary) or not dictionary.startswith("DICT_4X4"):
-        raise ValueError(f"dictionary must be an OpenCV 4x4 ArUco dictionary, got {dictionary!r}")
-    if not 0.05 <= marker_fraction <= 0.3:
-        raise ValueError(f"marker_fraction must be within [0.05, 0.3], got {marker_fraction}")
-    side = int(min(nx, ny) * marker_fraction) // _CELLS * _CELLS
+        nx, ny, pitch, margin = _paper(width_m, height_m, dpi)
+    side = _marker_side(nx, ny, dictionary, marker_fraction)
     band = max(1, round(min(nx, ny) * FRAME_FRACTION))
     outer = margin + max(1, round(min(nx, ny) * _FRAME_QUIET))  # the frame's outer edge (px)
-    if side < 4 * _CELLS:
-        raise ValueError(
-            f"a {nx}x{ny}-pixel raster makes markers of {side} px: raise dpi or the chart's size"
-        )
     aruco = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
     rng = np.random.default_rng(seed)
     places = _ring(nx, ny, side, outer + band)
@@ -180,26 +158,8 @@ def make_chart(
         raise ValueError(f"{dictionary} has {n_ids} markers, the layout needs {len(places)}")
     ids = sorted(int(i) for i in rng.choice(n_ids, size=len(places), replace=False))
     codes = _dead_leaves(rng, nx, ny)
-    white, black = (encode(v) for v in (HIGH, LOW))
-    if margin:
-        codes[:margin], codes[-margin:], codes[:, :margin], codes[:, -margin:] = (white,) * 4
-    codes[margin:outer, margin : nx - margin] = white
-    codes[ny - outer : ny - margin, margin : nx - margin] = white
-    codes[margin : ny - margin, margin:outer] = white
-    codes[margin : ny - margin, nx - outer : nx - margin] = white
-    inner = outer + band
-    codes[outer:inner, outer : nx - outer] = black
-    codes[ny - inner : ny - outer, outer : nx - outer] = black
-    codes[outer : ny - outer, outer:inner] = black
-    codes[outer : ny - outer, nx - inner : nx - outer] = black
-    quiet = round(side * _QUIET)
-    markers = {}
-    for i, (x0, y0) in zip(ids, places):
-        codes[y0 - quiet : y0 + side + quiet, x0 - quiet : x0 + side + quiet] = white
-        bits = cv2.aruco.generateImageMarker(aruco, i, side, borderBits=1)
-        codes[y0 : y0 + side, x0 : x0 + side] = np.where(bits > 127, white, black)
-        corners = np.array([(x0, y0), (x0 + side, y0), (x0 + side, y0 + side), (x0, y0 + side)])
-        markers[i] = corners * pitch
+    _draw_frame(codes, margin, outer, band)
+    markers = _draw_markers(codes, aruco, ids, places, side, pitch)
     chart = Chart(
         width_m=nx * pitch,
         height_m=ny * pitch,
@@ -220,6 +180,77 @@ def make_chart(
     raster = decode(codes)
     remember(chart, raster)
     return chart, raster
+
+
+def _screen(screen_px, screen_width_m) -> tuple[int, int, float, int]:
+    """A monitor chart's raster `(nx, ny)`, its pitch (m) and margin (none)."""
+    if screen_px is None or screen_width_m is None:
+        raise ValueError(
+            "a monitor chart needs screen_px=(width, height) in pixels and screen_width_m"
+        )
+    nx, ny = (int(v) for v in screen_px)
+    if nx < 64 or ny < 64 or not screen_width_m > 0:
+        raise ValueError(f"bad screen: {screen_px=} (>= 64 px each), {screen_width_m=} m")
+    return nx, ny, float(screen_width_m) / nx, 0
+
+
+def _paper(width_m, height_m, dpi) -> tuple[int, int, float, int]:
+    """A printed chart's raster `(nx, ny)`, its pitch (m) and its unprinted margin (px)."""
+    if not (width_m > 0 and height_m > 0 and dpi > 0):
+        raise ValueError(
+            f"the chart's size and dpi must be positive, got {width_m=}, {height_m=}, {dpi=}"
+        )
+    pitch = _INCH / dpi
+    return round(width_m / pitch), round(height_m / pitch), pitch, round(_PAPER_MARGIN / pitch)
+
+
+def _marker_side(nx: int, ny: int, dictionary: str, marker_fraction) -> int:
+    """The markers' side (raster px, whole cells) on an `nx x ny` raster; `ValueError` for a
+    dictionary that is not a 4x4 ArUco one, a fraction out of range or markers too small."""
+    if not hasattr(_cv2().aruco, dictionary) or not dictionary.startswith("DICT_4X4"):
+        raise ValueError(f"dictionary must be an OpenCV 4x4 ArUco dictionary, got {dictionary!r}")
+    if not 0.05 <= marker_fraction <= 0.3:
+        raise ValueError(f"marker_fraction must be within [0.05, 0.3], got {marker_fraction}")
+    side = int(min(nx, ny) * marker_fraction) // _CELLS * _CELLS
+    if side < 4 * _CELLS:
+        raise ValueError(
+            f"a {nx}x{ny}-pixel raster makes markers of {side} px: raise dpi or the chart's size"
+        )
+    return side
+
+
+def _draw_markers(codes: np.ndarray, aruco, ids, places, side: int, pitch: float) -> dict:
+    """Into the raster's codes: marker `ids[k]` (`side` px) at `places[k]` (its top-left pixel)
+    in a white quiet zone; returns each marker's corners on the chart (m)."""
+    cv2 = _cv2()
+    white, black = (encode(v) for v in (HIGH, LOW))
+    quiet = round(side * _QUIET)
+    markers = {}
+    for i, (x0, y0) in zip(ids, places):
+        codes[y0 - quiet : y0 + side + quiet, x0 - quiet : x0 + side + quiet] = white
+        bits = cv2.aruco.generateImageMarker(aruco, i, side, borderBits=1)
+        codes[y0 : y0 + side, x0 : x0 + side] = np.where(bits > 127, white, black)
+        corners = np.array([(x0, y0), (x0 + side, y0), (x0 + side, y0 + side), (x0, y0 + side)])
+        markers[i] = corners * pitch
+    return markers
+
+
+def _draw_frame(codes: np.ndarray, margin: int, outer: int, band: int) -> None:
+    """Into the raster's codes `(ny, nx)`: the white margin and zone out to `outer` px, then the
+    black frame `band` px wide."""
+    ny, nx = codes.shape
+    white, black = (encode(v) for v in (HIGH, LOW))
+    if margin:
+        codes[:margin], codes[-margin:], codes[:, :margin], codes[:, -margin:] = (white,) * 4
+    codes[margin:outer, margin : nx - margin] = white
+    codes[ny - outer : ny - margin, margin : nx - margin] = white
+    codes[margin : ny - margin, margin:outer] = white
+    codes[margin : ny - margin, nx - outer : nx - margin] = white
+    inner = outer + band
+    codes[outer:inner, outer : nx - outer] = black
+    codes[ny - inner : ny - outer, outer : nx - outer] = black
+    codes[outer : ny - outer, outer:inner] = black
+    codes[outer : ny - outer, nx - inner : nx - outer] = black
 
 
 # Each chart's raster, while the chart lives: `make_chart` and `read_chart` put it here, so that a

@@ -226,8 +226,19 @@ def detect_chart(
         start, template, _, src, dst = best
         dst = _project(np.linalg.inv(to_work), dst)
     hom, coc, corr = _refine(light, template, start)
-    hom = np.linalg.inv(to_work) @ hom
-    coc = coc / to_work[0, 0]
+    found = (ids, corners, points, (src, dst))
+    return _view(
+        chart, name, found, np.linalg.inv(to_work) @ hom, coc / to_work[0, 0], corr, method, (h, w)
+    )
+
+
+def _view(chart: Chart, name: str, found, hom, coc: float, corr: float, method: str, shape):
+    """`detect_chart`'s `ChartView` from the refined homography `hom` (photo pixels), or a
+    `ChartError` where the chart covers too little of the frame. `found`: the markers decoded
+    (`ids`, `corners`), their chart points, and the point pairs `(src, dst)` the start came from
+    (the markers' corners, or the frame's), whose fit the view reports."""
+    ids, corners, points, (src, dst) = found
+    h, w = shape
     cover = _area(np.clip(_project(hom, chart.corners), [0, 0], [w, h])) / (w * h)
     if cover < _MIN_COVER:
         raise ChartError(

@@ -406,15 +406,7 @@ def _start(
         "focus_distance": args.focus,
         "sensor_width": args.sensor_width,
     }
-    read: dict[str, float] = {}  # the usable EXIF values
-    if exif is not None:
-        found = {
-            "focal_length": exif.focal_length,
-            "f_number": exif.f_number,
-            "focus_distance": exif.focus_distance,
-            "sensor_width": exif.sensor_width(photo[1], photo[0]),
-        }
-        read = {name: value for name, value in found.items() if value is not None}
+    read = _exif_values(exif, photo)
     focal_length: float | None = given["focal_length"] or read.get("focal_length")
     if focal_length is None:
         why = "--no-exif" if args.no_exif else f"{args.targets[0]} has no EXIF FocalLength"
@@ -434,16 +426,30 @@ def _start(
         "focus_distance": float(np.nanmedian(depth)),  # (NaN: depth holes)
         "sensor_width": FULL_FRAME_WIDTH,
     }
-
-    def pick(name: str) -> float:
-        value = given[name]
-        if value is not None:
-            return value
-        return read[name] if name in read else defaults[name]
-
-    values = {name: pick(name) for name in given}
+    values = {
+        name: value if value is not None else read.get(name, defaults[name])
+        for name, value in given.items()
+    }
     if exif is None:
         return values, None
+    return values, _exif_summary(args, exif, read, given, photo)
+
+
+def _exif_values(exif, photo: tuple[int, ...]) -> dict[str, float]:
+    """The lens fields EXIF holds (SI; the sensor width for a photo of shape `photo`)."""
+    if exif is None:
+        return {}
+    found = {
+        "focal_length": exif.focal_length,
+        "f_number": exif.f_number,
+        "focus_distance": exif.focus_distance,
+        "sensor_width": exif.sensor_width(photo[1], photo[0]),
+    }
+    return {name: value for name, value in found.items() if value is not None}
+
+
+def _exif_summary(args, exif, read: dict, given: dict, photo: tuple[int, ...]) -> dict[str, Any]:
+    """The `--json` `"exif"` object; what EXIF said and what of it was used, on stderr."""
     used = [name for name in read if given[name] is None]
     overridden = [name for name in read if given[name] is not None]
     if "sensor_width" in used and exif.pixel_pitch is not None and exif.pixel_dimensions:
@@ -455,14 +461,13 @@ def _start(
                 "cropped (give --sensor-width for a crop)"
             )
     note(report.exif_line(args.targets[0], exif, read, used, overridden, args.free))
-    summary = {
+    return {
         "file": args.targets[0],
         **exif.to_dict(),
         "sensor_width": read.get("sensor_width"),
         "used": used,
         "overridden": overridden,
     }
-    return values, summary
 
 
 @dataclasses.dataclass
@@ -804,20 +809,8 @@ def run_calibrate(args) -> int:
     with library_checks():
         chart, raster = jaxdof.read_chart(args.chart)
     plot.check_plot(args.plot, [args.chart, *args.photos], "--plot")
-    photos, views = [], []
     with Display.for_stderr(args.quiet) as display:
-        for path in args.photos:
-            display.status(f"reading {path}")
-            photo = read_image(path, linear=args.linear, option="PHOTO").array
-            if photos and photo.shape != photos[0].shape:
-                raise InputError(
-                    f"{path}: shape {photo.shape}, the first PHOTO's is {photos[0].shape}; "
-                    "the photos must match"
-                )
-            display.status(f"finding the chart in {path}")
-            with library_checks():
-                views.append(jaxdof.detect_chart(photo, chart, name=path))
-            photos.append(photo)
+        photos, views = _photos_with_chart(args, chart, display)
         exifs = [_photo_exif(args, p) for p in args.photos]
         shape = photos[0].shape
         pitch = None if args.sensor_width is None else args.sensor_width / shape[1]
@@ -842,41 +835,71 @@ def run_calibrate(args) -> int:
     summary = report.fit_summary(cal.fit)
     summary["chart"] = cal.to_dict()
     if not args.json:
-        moved = cal.aligned_px or (None,) * len(args.photos)
-        for path, entry, m in zip(args.photos, summary["chart"]["photos"], moved):
-            again = "" if m is None else f", aligned again with the fitted blur (moved {m:.2f} px)"
-            print(
-                f"{path}: {entry['markers']} markers, homography error "
-                f"{entry['reprojection_error_px']:.2f} px{again}, tilt {entry['tilt_deg']:.1f} "
-                f"deg, chart at {entry['distance_m']:.3g} m"
-            )
-        near, far = cal.depth_range
-        pm = f" +- {cal.focal_px_stderr:.2g}" if cal.focal_px_stderr > 0 else ""
-        print(
-            f"camera: focal length {cal.focal_px:.1f}{pm} px (from the {cal.intrinsics}), chart "
-            f"depths {near:.3g}-{far:.3g} m"
-        )
+        _print_chart(args.photos, cal, summary["chart"]["photos"])
     pixels = len(photos) * int(np.prod(shape[:2]))
     report.print_fit(
         summary, args.photos, ("focus_distance", "f_number"), as_json=args.json, pixels=pixels
     )
     if args.plot:
-        sharp, depth = jaxdof.chart_scene(chart, raster, cal.poses[0], cal.camera, shape)
-        if len(shape) == 3:
-            sharp = np.repeat(sharp[..., None], shape[2], axis=-1)
-        t = cal.fit.treatment
-        assert t is not None  # fit_lens always reports its treatment
-        with Display.for_stderr(args.quiet) as display, out_of_memory("fit", shape):
-            display.status(f"drawing {args.plot}")
-            plot.plot_fit(
-                args.plot,
-                sharp,
-                jaxdof.fill_depth_holes(depth),
-                photos,
-                cal.fit,
-                args.photos,
-                [args.chart, *args.photos],
-                render_options=dict(method=t.method, footprint=t.footprint, downsample=1),
-            )
-        note(f"wrote {args.plot}")
+        _plot_calibration(args, chart, raster, photos, cal)
     return 0 if summary["success"] else 1
+
+
+def _photos_with_chart(args, chart, display) -> tuple[list[np.ndarray], list]:
+    """`jaxdof calibrate`'s photos, read, and the chart found in each (one line and exit 2 where
+    a photo's shape differs or the chart is not found)."""
+    photos, views = [], []
+    for path in args.photos:
+        display.status(f"reading {path}")
+        photo = read_image(path, linear=args.linear, option="PHOTO").array
+        if photos and photo.shape != photos[0].shape:
+            raise InputError(
+                f"{path}: shape {photo.shape}, the first PHOTO's is {photos[0].shape}; "
+                "the photos must match"
+            )
+        display.status(f"finding the chart in {path}")
+        with library_checks():
+            views.append(jaxdof.detect_chart(photo, chart, name=path))
+        photos.append(photo)
+    return photos, views
+
+
+def _print_chart(paths, cal, entries) -> None:
+    """What the chart told: per photo its markers, fit and pose; the camera and the depths."""
+    moved = cal.aligned_px or (None,) * len(paths)
+    for path, entry, m in zip(paths, entries, moved):
+        again = "" if m is None else f", aligned again with the fitted blur (moved {m:.2f} px)"
+        print(
+            f"{path}: {entry['markers']} markers, homography error "
+            f"{entry['reprojection_error_px']:.2f} px{again}, tilt {entry['tilt_deg']:.1f} "
+            f"deg, chart at {entry['distance_m']:.3g} m"
+        )
+    near, far = cal.depth_range
+    pm = f" +- {cal.focal_px_stderr:.2g}" if cal.focal_px_stderr > 0 else ""
+    print(
+        f"camera: focal length {cal.focal_px:.1f}{pm} px (from the {cal.intrinsics}), chart "
+        f"depths {near:.3g}-{far:.3g} m"
+    )
+
+
+def _plot_calibration(args, chart, raster, photos, cal) -> None:
+    """`--plot`: photo, render and residual over the chart as the first photo shows it."""
+    shape = photos[0].shape
+    sharp, depth = jaxdof.chart_scene(chart, raster, cal.poses[0], cal.camera, shape)
+    if len(shape) == 3:
+        sharp = np.repeat(sharp[..., None], shape[2], axis=-1)
+    t = cal.fit.treatment
+    assert t is not None  # fit_lens always reports its treatment
+    with Display.for_stderr(args.quiet) as display, out_of_memory("fit", shape):
+        display.status(f"drawing {args.plot}")
+        plot.plot_fit(
+            args.plot,
+            sharp,
+            jaxdof.fill_depth_holes(depth),
+            photos,
+            cal.fit,
+            args.photos,
+            [args.chart, *args.photos],
+            render_options=dict(method=t.method, footprint=t.footprint, downsample=1),
+        )
+    note(f"wrote {args.plot}")

@@ -469,6 +469,20 @@ def _add_fit_pixels(fit) -> None:
         help="fit on informative tiles of the photo: auto (default: 2^17 pixels of tiles for "
         "photos over 2^20 pixels), off (the whole frame) or a budget of N photo pixels",
     )
+    _add_fit_camera(fit)
+    fit.add_argument(
+        "--memory",
+        type=parse_memory,
+        default=None,
+        metavar="SIZE",
+        help="memory the fit may use besides the files as read, e.g. 8GB (default: what the "
+        "machine has available once they are read): a fit "
+        "estimated to need more stops before it starts, saying what would fit",
+    )
+
+
+def _add_fit_camera(fit) -> None:
+    """`fit`'s switches for what the camera added: the nuisances and the luma comparison."""
     for name, what in (
         ("exposure", "a gain and offset per TARGET"),
         ("vignetting", "a radial gain 1 + a r^2 + b r^4 per TARGET"),
@@ -490,15 +504,6 @@ def _add_fit_pixels(fit) -> None:
         "half-resolution colour, 4:2:0 or 4:2:2, as cameras write; else where a TARGET has lost "
         "the all-in-focus image's colour detail), on or off",
     )
-    fit.add_argument(
-        "--memory",
-        type=parse_memory,
-        default=None,
-        metavar="SIZE",
-        help="memory the fit may use besides the files as read, e.g. 8GB (default: what the "
-        "machine has available once they are read): a fit "
-        "estimated to need more stops before it starts, saying what would fit",
-    )
 
 
 def _add_fit(sub) -> None:
@@ -513,29 +518,7 @@ def _add_fit(sub) -> None:
     fit.add_argument("image", metavar="IMAGE", help="all-in-focus image")
     fit.add_argument("depth", metavar="DEPTH", help="depth map, same height and width")
     fit.add_argument("targets", metavar="TARGET", nargs="+", help="photo(s) taken through the lens")
-    fit.add_argument(
-        "--free",
-        nargs="+",
-        choices=FIELDS,
-        default=["focus_distance", "f_number"],
-        metavar="FIELD",
-        help="lens fields to fit (default: focus_distance f_number); one of " + ", ".join(FIELDS),
-    )
-    fit.add_argument(
-        "--shared",
-        nargs="+",
-        choices=FIELDS,
-        default=[],
-        metavar="FIELD",
-        help="free fields shared by all targets (the others get one value per target)",
-    )
-    fit.add_argument("--max-steps", type=int, default=100, metavar="N", help="solver steps (100)")
-    fit.add_argument(
-        "--steps",
-        action="store_true",
-        help="show every solver step and the lens it reached (a host callback in each solve: "
-        "its programs are then compiled anew each run, not loaded from the cache)",
-    )
+    _add_fit_fields(fit)
     _add_method_option(
         fit,
         "filter of the forward model (default: chosen by the fit: soft, or occlusion where depth "
@@ -566,6 +549,33 @@ def _add_fit(sub) -> None:
     )
     _add_lens_options(fit, start=True)
     _add_file_options(fit)
+
+
+def _add_fit_fields(fit) -> None:
+    """`jaxdof fit`'s free and shared lens fields and its solver's steps."""
+    fit.add_argument(
+        "--free",
+        nargs="+",
+        choices=FIELDS,
+        default=["focus_distance", "f_number"],
+        metavar="FIELD",
+        help="lens fields to fit (default: focus_distance f_number); one of " + ", ".join(FIELDS),
+    )
+    fit.add_argument(
+        "--shared",
+        nargs="+",
+        choices=FIELDS,
+        default=[],
+        metavar="FIELD",
+        help="free fields shared by all targets (the others get one value per target)",
+    )
+    fit.add_argument("--max-steps", type=int, default=100, metavar="N", help="solver steps (100)")
+    fit.add_argument(
+        "--steps",
+        action="store_true",
+        help="show every solver step and the lens it reached (a host callback in each solve: "
+        "its programs are then compiled anew each run, not loaded from the cache)",
+    )
 
 
 def _add_info(sub) -> None:

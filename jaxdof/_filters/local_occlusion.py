@@ -258,7 +258,14 @@ def local_occlusion_filter(
 
     lit0, map0 = jnp.zeros((h, w, c + 1), dtype), jnp.zeros((h, w), dtype)
     init = (lit0, lit0, lit0) + ((map0, lit0) if fill else ())
-    sums = list(_scan_classes(offsets, dtype, init, body))
+    return _composite(list(_scan_classes(offsets, dtype, init, body)), c, fill)
+
+
+def _composite(sums: list, c: int, fill: bool):
+    """`local_occlusion_filter`'s output from its sums over the window (light and coverage of
+    all sources, of those in front of and behind the receiver's surface; with `fill`, the
+    hidden share of the receiver's circle and the sources around it): the layers composited
+    back to front."""
     (total, a_total), (front, a_front), (behind, a_behind) = (
         (x[..., :c], x[..., c]) for x in sums[:3]
     )
