@@ -6,7 +6,7 @@ import pytest
 
 import jaxdof
 from jaxdof import LocalOcclusion
-from jaxdof._fit import tiles as T
+from jaxdof._fit import select, tiles as T
 from jaxdof._fit.prepare import prepare_problem
 
 from .helpers import EXACT
@@ -123,10 +123,18 @@ def _fit_on_tiles(pyramid):
     for name in ("f_number", "focus_distance"):
         err = abs(float(getattr(res.lens, name)) - float(getattr(TRUTH, name)))
         assert err <= 3 * float(res.stderr[name]), (name, err, float(res.stderr[name]))
+    return res
 
 
 def test_fit_on_tiles_with_a_scout_recovers_the_lens():
-    _fit_on_tiles(pyramid=2)
+    res = _fit_on_tiles(pyramid=2)
+    # Given an earlier fit's tiles, a fit is on the same pixels (how the photo's say compares
+    # its alternatives with the fit they would replace: `select.same_pixels`)
+    image, depth, rng = scene()
+    photo = np.asarray(jaxdof.render(image, depth, TRUTH)) + 0.003 * rng.standard_normal((S, S))
+    assert select.same_pixels(res)["tiles"] == res.tiles
+    again = jaxdof.fit_lens(image, depth, photo, res.lens, tiles=res.tiles, starts=1, **EXACT)
+    assert again.tiles == res.tiles and int(again.pixels_used) == int(res.pixels_used)
 
 
 def test_fit_on_tiles_chosen_at_the_init_recovers_the_lens():
@@ -150,6 +158,12 @@ def test_tiles_option():
     assert T.use_tiles("auto", (2000, 1000)) == T.BUDGET
     assert T.use_tiles(None, (5000, 5000)) is None and T.use_tiles(False, (5000, 5000)) is None
     assert T.use_tiles(5000, (10, 10)) == 5000
+    # an earlier fit's tiles (`FitResult.tiles`): their interiors' pixels; `()` the whole frame
+    assert T.use_tiles(((40, 40, 32, 32), (40, 72, 32, 32)), (200, 200)) == 2 * 32 * 32
+    assert T.use_tiles((), (5000, 5000)) is None
+    for bad in (((1, 2, 3),), ((1, 2, 8, 9),), ((1, 2, 8, 8), (3, 4, 16, 16))):
+        with pytest.raises(ValueError, match="tiles"):
+            T.use_tiles(bad, (100, 100))
     for bad in ("yes", 0, -3, 1.5, True):
         with pytest.raises(ValueError, match="tiles must be"):
             T.use_tiles(bad, (10, 10))

@@ -83,10 +83,12 @@ from .tiles import (
     choose_tiles,
     edge_free,
     fits_tiles,
+    given_tiles,
     jacobian_information,
     pixel_information,
     scout_factor,
     scout_problem,
+    tile_boxes,
     tiled_problem,
     use_tiles,
 )
@@ -141,6 +143,7 @@ class _Run:
     border: int | None  # the user's band (photo pixels); None: the window's (automatic)
     init_last: bool = False  # the last start is the raw init, outside the window's reach
     extra_band: int = 0  # photo pixels added to the band (a registration's reach)
+    boxes: tuple | None = None  # the tiles' interiors where given (an earlier fit's)
 
     def residual(self, window: float) -> _Model:
         """The residual function with a given filter window."""
@@ -377,12 +380,17 @@ def _on_tiles(run: _Run, rows0: np.ndarray, window: float, budget: int, levels: 
     start is solved at full resolution on them."""
     p, forward = run.problem, run.forward
     _stage(run.verbose, f"choosing tiles: {budget} of {p.photo[0] * p.photo[1]} photo pixels")
+
+    def choose(win: float, information) -> Tiles | None:
+        # An earlier fit's tiles where given and their halos fit, so that it is compared with
+        # this one on the same pixels (`select.same_pixels`); else chosen here.
+        given = None if run.boxes is None else given_tiles(p.photo, forward, win, run.boxes)
+        return given or choose_tiles(p, forward, win, budget, information)
+
     q = scout_factor(p.photo, forward.max_circle(rows0, p.d), levels)  # levels 1: one start
     y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.nuisances)
     if q == 1:
-        chosen = choose_tiles(
-            p, forward, window, budget, lambda: pixel_information(p, forward, rows0)
-        )
+        chosen = choose(window, lambda: pixel_information(p, forward, rows0))
         assert chosen is not None  # `fits_tiles` said there is room
         run = dataclasses.replace(run, problem=tiled_problem(p, chosen), border=0, levels=1)
         return run, y0_init, rows0, chosen
@@ -412,9 +420,7 @@ def _on_tiles(run: _Run, rows0: np.ndarray, window: float, budget: int, levels: 
         return jacobian_information(jax.device_get(jac), tg.shape, p.spec.used), q
 
     # (The init's window had room for tiles; a larger fine window may not: then its halos.)
-    chosen = choose_tiles(p, forward, fine, budget, information) or choose_tiles(
-        p, forward, window, budget, information
-    )
+    chosen = choose(fine, information) or choose(window, information)
     assert chosen is not None
     if run.max_radius is None:
         # The halos were sized for circles over the whole scene's depths; the tiles hold fewer.
@@ -801,7 +807,7 @@ def fit_lens(
     pyramid: int | None = None,
     downsample: int | None = None,
     border: bool | str | int = "auto",
-    tiles: str | int | bool | None = "auto",
+    tiles: str | int | bool | Sequence[tuple[int, int, int, int]] | None = "auto",
     edge_weight: bool | float | None = None,
 ) -> FitResult:
     r"""Recover lens parameters from defocused photos of a scene with known image and depth.
@@ -859,7 +865,8 @@ def fit_lens(
     - `border`: `"auto"`/`True` leaves out the band the window reaches, an int that many photo
       pixels, `False`/`0` none.
     - `tiles`: `"auto"` fits a photo of more than 2^20 pixels on 2^17 pixels of informative tiles
-      (`jaxdof/_fit/tiles.py`); an int is that budget; `None`/`False` the whole frame.
+      (`jaxdof/_fit/tiles.py`); an int is that budget; `None`/`False` the whole frame; an
+      earlier fit's `FitResult.tiles`, its pixels.
     - `edge_weight`: the weight ramping to 0 at depth edges: `None` decides, `False`, `True`, or a
       width in photo pixels.
 
@@ -1037,7 +1044,8 @@ def _fit_treated(
             return _fit_treated(**{**given, "registration_reach": needed})
     if chosen is not None:
         if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
-            return _fit_treated(**{**given, "max_radius": window, "tiles": budget})
+            again = tiles if run.boxes is not None else budget  # (given tiles where they fit)
+            return _fit_treated(**{**given, "max_radius": window, "tiles": again})
         notes.append(_tiles_note(chosen, full_pixels))
         result = dataclasses.replace(result, tiles=chosen.boxes)
     # A rank-deficient solution that the photos contradict (the adequacy test fails there) while
@@ -1093,8 +1101,8 @@ def _set_up(
         treatment = dataclasses.replace(
             treatment, depth_holes=holes, hole_pixels=hole_pixels, hole_reach=hole_reach
         )
-    budget = use_tiles(tiles, p.photo)
-    if budget is not None and not fits_tiles(p.photo, forward, window, budget):
+    budget, boxes = use_tiles(tiles, p.photo), tile_boxes(tiles)
+    if budget is not None and boxes is None and not fits_tiles(p.photo, forward, window, budget):
         budget = None  # too few candidate tiles: the whole frame
     if levels is None and len(rows0) == 1:
         # From one start the init is refined at full resolution anyway (`_coarse_to_fine`), so
@@ -1102,7 +1110,9 @@ def _set_up(
         # (fits/recover.py).
         levels = 1
     user_window = None if max_radius is None else window
-    run = _Run(p, forward, solver, coarse_solver, verbose, max_steps, user_window, 1, band)
+    run = _Run(
+        p, forward, solver, coarse_solver, verbose, max_steps, user_window, 1, band, boxes=boxes
+    )
     if "registration" in p.spec.nuisances and budget is not None:
         raise ValueError(
             "registration is fitted on the whole frame (it resamples the photo, reading pixels "

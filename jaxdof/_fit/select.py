@@ -103,10 +103,12 @@ def _as_chosen(result: FitResult, call: dict) -> dict:
 
 
 def same_pixels(result: FitResult) -> dict:
-    """The options that make a refit leave out `result`'s pixels: the reach of its registration
-    and of its depth holes (each set by the starting lens, which a refit's differs from), where
-    it has them; the band is `_as_chosen`'s."""
-    out = {}
+    """The options that make a refit fit `result`'s pixels: its tiles (chosen at its own lens or
+    scout, which a refit's differ from), the reach of its registration and of its depth holes
+    (each set by the starting lens), where it has them; the band is `_as_chosen`'s."""
+    out: dict = {}
+    if result.tiles:
+        out["tiles"] = tuple(tuple(int(v) for v in box) for box in result.tiles)
     reach = (result.nuisances or {}).get("registration", {}).get("reach")
     if reach is not None:
         out["registration_reach"] = int(reach)

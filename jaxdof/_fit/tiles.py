@@ -137,9 +137,14 @@ class Tiles:
 def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
     """The pixel budget of a fit on tiles, or None for the whole frame: `tiles` is `"auto"`
     (tiles with `BUDGET` when the photo has more than `TILES_ABOVE` pixels), `None`/`False`
-    (the whole frame) or a positive int (a budget of interior pixels)."""
-    if tiles is None or tiles is False:
+    (the whole frame), a positive int (a budget of interior pixels) or an earlier fit's tiles
+    (`FitResult.tiles`, `tile_boxes`: their interiors' pixels; `()`, a whole-frame fit's, is
+    the whole frame)."""
+    if tiles is None or tiles is False or (isinstance(tiles, (tuple, list)) and not tiles):
         return None
+    boxes = tile_boxes(tiles)
+    if boxes is not None:
+        return sum(h * w for _, _, h, w in boxes)
     if isinstance(tiles, str):
         if tiles != "auto":
             raise ValueError(f"tiles must be 'auto', None/False or a pixel budget, got {tiles!r}")
@@ -149,6 +154,37 @@ def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
             f"tiles must be 'auto', None/False or a positive pixel budget, got {tiles!r}"
         )
     return int(tiles)
+
+
+def tile_boxes(tiles) -> tuple[tuple[int, int, int, int], ...] | None:
+    """`tiles` as an earlier fit's interiors, `(row, column, side, side)` each (`FitResult.tiles`),
+    or None where it is not a sequence of them (a `use_tiles` choice: `"auto"`, a budget,
+    `None`; or `()`, a whole-frame fit's); `ValueError` for boxes that are not squares of one
+    side at non-negative corners."""
+    if not isinstance(tiles, (tuple, list, np.ndarray)) or len(tiles) == 0:
+        return None
+    boxes: list[tuple[int, int, int, int]] = []
+    for box in tiles:
+        values = tuple(int(v) for v in np.ravel(box))
+        if len(values) != 4 or min(values) < 0 or values[2] != values[3] or values[2] < 1:
+            raise ValueError(f"tiles: {box!r} is not (row, column, side, side) of a square")
+        boxes.append((values[0], values[1], values[2], values[3]))
+    if len({b[2] for b in boxes}) != 1:
+        raise ValueError("tiles: the boxes differ in side; tiles are of one side")
+    return tuple(boxes)
+
+
+def given_tiles(photo: tuple[int, ...], forward, window: float, boxes) -> Tiles | None:
+    """`Tiles` with the interiors `boxes` (`tile_boxes`) and halos of `window`'s reach, or None
+    where a halo would leave the frame (a larger window than the one they were chosen for)."""
+    hh, ww = photo[:2]
+    halo, side = int(forward.border_band(window)), boxes[0][2]
+    corners = tuple((r, c) for r, c, _, _ in boxes)
+    inside = all(
+        halo <= r and r + side + halo <= hh and halo <= c and c + side + halo <= ww
+        for r, c in corners
+    )
+    return Tiles(corners, side, halo, (int(hh), int(ww))) if inside else None
 
 
 def estimate_fit_memory(
