@@ -161,6 +161,11 @@ def test_tiles_option():
     # an earlier fit's tiles (`FitResult.tiles`): their interiors' pixels; `()` the whole frame
     assert T.use_tiles(((40, 40, 32, 32), (40, 72, 32, 32)), (200, 200)) == 2 * 32 * 32
     assert T.use_tiles((), (5000, 5000)) is None
+    # their halos are the window's reach; where one would leave the frame they are not used
+    model = jaxdof.DefocusModel()
+    given = T.given_tiles((200, 200), model, 8.0, ((20, 20, 32, 32),))
+    assert given == T.Tiles(((20, 20),), 32, int(model.border_band(8.0)), (200, 200))
+    assert T.given_tiles((200, 200), model, 16.0, ((10, 20, 32, 32),)) is None
     for bad in (((1, 2, 3),), ((1, 2, 8, 9),), ((1, 2, 8, 8), (3, 4, 16, 16))):
         with pytest.raises(ValueError, match="tiles"):
             T.use_tiles(bad, (100, 100))

@@ -333,7 +333,7 @@ def _focus_share(geometry: _Geometry, camera, fit: FitResult) -> _Geometry:
     """`geometry` with the standard error of `f_px` that the fitted focus gives it, where `f_px`
     was taken at that focus (`_focused`: the focal length and the pitch given, not the focus):
     `f_px = 1 / ((1 / f - P) p)`, so `sigma(f_px) = f_px s sigma(P)` with `s = f_px p`."""
-    f, pitch, focus = camera
+    _, pitch, focus = camera
     if geometry.source != _GIVEN or focus is not None:
         return geometry
     power_se = float(np.ravel(np.asarray(fit.focus_power_stderr))[0])

@@ -1102,8 +1102,9 @@ def _set_up(
             treatment, depth_holes=holes, hole_pixels=hole_pixels, hole_reach=hole_reach
         )
     budget, boxes = use_tiles(tiles, p.photo), tile_boxes(tiles)
-    if budget is not None and boxes is None and not fits_tiles(p.photo, forward, window, budget):
-        budget = None  # too few candidate tiles: the whole frame
+    given = boxes is not None and given_tiles(p.photo, forward, window, boxes) is not None
+    if budget is not None and not given and not fits_tiles(p.photo, forward, window, budget):
+        budget = None  # too few candidate tiles (and no given ones that fit): the whole frame
     if levels is None and len(rows0) == 1:
         # From one start the init is refined at full resolution anyway (`_coarse_to_fine`), so
         # coarse levels would only add work: measured 0.5-0.7x the full-resolution fit's speed
