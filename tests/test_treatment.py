@@ -151,8 +151,8 @@ def test_fit_lens_refuses_a_bad_edge_weight():
 
 def test_edge_distance_is_exact():
     """The capped Euclidean distance to the nearest edge pixel, against brute force (a few
-    edges) and scipy's exact transform (a large hole: distances to hundreds of pixels, where a
-    float32 sum of squares would first lose integers)."""
+    edges) and scipy's exact transform (a large hole: distances to hundreds of pixels, which
+    the float32 transform holds to rounding)."""
     from scipy import ndimage
 
     rng = np.random.default_rng(0)

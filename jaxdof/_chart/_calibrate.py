@@ -23,7 +23,7 @@ from .._lens import ThinLens, coc_radius
 from .._render import render
 from ._align import align_view, usable_pixels
 from ._design import Chart
-from ._detect import ChartView, detect_chart
+from ._detect import ChartView, detect_chart, mask_box
 from ._geometry import (
     ChartError,
     ChartPose,
@@ -320,25 +320,33 @@ def _aligned_fit(
     depth, again = fit_at(geometry, fit, median)
     # `f_px` was taken at the first fit's focus (`_focused`); where the focus found now moves it
     # (a first fit far off), once more at the new one.
-    refocused = _Geometry.of(found, *_focused(camera, _first_focus(again), geometry.f_px))
-    if abs(refocused.f_px / geometry.f_px - 1) > _tuning.CHART_REFOCUS:
-        stage_note("the focal length in pixels at the fitted focus; fitting again")
-        median = float(np.nanmedian(depth))
-        geometry = refocused
-        depth, again = fit_at(geometry, again, median)
+    if _at_fitted_focus(camera):
+        refocused = _Geometry.of(found, *_focused(camera, _first_focus(again), geometry.f_px))
+        if abs(refocused.f_px / geometry.f_px - 1) > _tuning.CHART_REFOCUS:
+            stage_note("the focal length in pixels at the fitted focus; fitting again")
+            median = float(np.nanmedian(depth))
+            geometry = refocused
+            depth, again = fit_at(geometry, again, median)
     return found, moved, _focus_share(geometry, camera, again), depth, _told_as(again, fit)
+
+
+def _at_fitted_focus(camera) -> bool:
+    """Whether `f_px` is taken at the fitted focus distance (`_focused`): the focal length and
+    the pitch of `camera` `(f, pitch, focus)` given, its focus distance not."""
+    f, pitch, focus = camera
+    return f is not None and pitch is not None and focus is None
 
 
 def _focus_share(geometry: _Geometry, camera, fit: FitResult) -> _Geometry:
     """`geometry` with the standard error of `f_px` that the fitted focus gives it, where `f_px`
     was taken at that focus (`_focused`: the focal length and the pitch given, not the focus):
     `f_px = 1 / ((1 / f - P) p)`, so `sigma(f_px) = f_px s sigma(P)` with `s = f_px p`."""
-    _, pitch, focus = camera
-    if geometry.source != _GIVEN or focus is not None:
+    if not _at_fitted_focus(camera):
         return geometry
     power_se = float(np.ravel(np.asarray(fit.focus_power_stderr))[0])
     if not math.isfinite(power_se):
         return geometry
+    pitch = camera[1]
     se = geometry.f_px * (geometry.f_px * pitch) * power_se
     return dataclasses.replace(geometry, f_px_se=math.hypot(geometry.f_px_se, se))
 
@@ -356,13 +364,8 @@ def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: 
     # of them (no hole's reaches them), and the template's cubic spline, whose prefilter decays
     # by 0.27 a pixel, sees nothing of the zeros 16 px further out.
     template = np.zeros(depth.shape, np.float32)
-    rows, cols = np.nonzero(usable.any(axis=1))[0], np.nonzero(usable.any(axis=0))[0]
-    if rows.size:
-        pad = math.ceil(reach) + _SPLINE_PAD
-        box = (
-            slice(max(rows[0] - pad, 0), rows[-1] + pad + 1),
-            slice(max(cols[0] - pad, 0), cols[-1] + pad + 1),
-        )
+    box = mask_box(usable, math.ceil(reach) + _SPLINE_PAD)
+    if box is not None:
         template[box] = np.asarray(render(sharp[box], depth[box], lens, fill_holes=True))
     at = geometry.poses[k].homography(geometry.camera)
     return align_view(photo, view, template, at, usable)
@@ -379,9 +382,9 @@ def _focused(camera, focus_fit: float, f_px: float):
     the lens's at its focus, not at the chart's centre. The fitted power is on the scale of the
     depth map made with `f_px`, and the depth scales with it: the fixed point of
     `P = P_fit f_px / f_px(P)`, each pass shrinking the error by about `f P`."""
-    f, pitch, focus = camera
+    f, pitch, _ = camera
     power = 1 / focus_fit
-    if focus is not None or f is None or pitch is None or not 0 <= power < 0.5 / f:
+    if not _at_fitted_focus(camera) or not 0 <= power < 0.5 / f:
         return camera
     p = power
     for _ in range(8):

@@ -587,22 +587,30 @@ class _Template:
         samples of the texture, so that another texture correlates little)."""
         cv2 = _cv2()
         m = self.mask(hom, coc) if mask is None else mask
-        ys, xs = np.nonzero(m.any(axis=1))[0], np.nonzero(m.any(axis=0))[0]
-        if ys.size == 0 or np.count_nonzero(m) < 64:
-            return -1.0
         wide = 0.75 * coc + 3
-        pad = int(3 * wide) + 2 if high else 0
-        x0, x1 = max(0, xs[0] - pad), min(m.shape[1], xs[-1] + 1 + pad)
-        y0, y1 = max(0, ys[0] - pad), min(m.shape[0], ys[-1] + 1 + pad)
-        a, b = light[y0:y1, x0:x1], self.render(hom, coc)[y0:y1, x0:x1]
+        box = mask_box(m, int(3 * wide) + 2 if high else 0)
+        if box is None or np.count_nonzero(m) < 64:
+            return -1.0
+        a, b = light[box], self.render(hom, coc)[box]
         if high:
             a = a - cv2.GaussianBlur(a, (0, 0), wide)
             b = b - cv2.GaussianBlur(b, (0, 0), wide)
-        keep = m[y0:y1, x0:x1]
+        keep = m[box]
         a, b = a[keep].astype(np.float64), b[keep].astype(np.float64)
         a, b = a - a.mean(), b - b.mean()
         den = math.sqrt(float(a @ a) * float(b @ b))
         return float(a @ b) / den if den > 0 else -1.0
+
+
+def mask_box(mask: np.ndarray, pad: int) -> tuple[slice, slice] | None:
+    """The rows and columns of the box around `mask`'s `True` pixels, `pad` more each side
+    within the frame; None where it has none."""
+    ys, xs = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    if ys.size == 0:
+        return None
+    return slice(max(0, ys[0] - pad), ys[-1] + 1 + pad), slice(
+        max(0, xs[0] - pad), xs[-1] + 1 + pad
+    )
 
 
 def _box(points, pad, shape) -> tuple[int, int, int, int]:

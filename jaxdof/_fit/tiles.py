@@ -140,11 +140,11 @@ def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
     (the whole frame), a positive int (a budget of interior pixels) or an earlier fit's tiles
     (`FitResult.tiles`, `tile_boxes`: their interiors' pixels; `()`, a whole-frame fit's, is
     the whole frame)."""
-    if tiles is None or tiles is False or (isinstance(tiles, (tuple, list)) and not tiles):
+    if tiles is None or tiles is False:
         return None
-    boxes = tile_boxes(tiles)
-    if boxes is not None:
-        return sum(h * w for _, _, h, w in boxes)
+    if _as_boxes(tiles):  # an earlier fit's, `()` a whole-frame fit's
+        boxes = tile_boxes(tiles)
+        return None if boxes is None else sum(h * w for _, _, h, w in boxes)
     if isinstance(tiles, str):
         if tiles != "auto":
             raise ValueError(f"tiles must be 'auto', None/False or a pixel budget, got {tiles!r}")
@@ -156,12 +156,17 @@ def use_tiles(tiles, photo: tuple[int, ...]) -> int | None:
     return int(tiles)
 
 
+def _as_boxes(tiles) -> bool:
+    """Whether `tiles` is a sequence of boxes (or none), not a `use_tiles` choice."""
+    return isinstance(tiles, (tuple, list)) or (isinstance(tiles, np.ndarray) and tiles.ndim == 2)
+
+
 def tile_boxes(tiles) -> tuple[tuple[int, int, int, int], ...] | None:
     """`tiles` as an earlier fit's interiors, `(row, column, side, side)` each (`FitResult.tiles`),
     or None where it is not a sequence of them (a `use_tiles` choice: `"auto"`, a budget,
     `None`; or `()`, a whole-frame fit's); `ValueError` for boxes that are not squares of one
     side at non-negative corners."""
-    if not isinstance(tiles, (tuple, list, np.ndarray)) or len(tiles) == 0:
+    if not _as_boxes(tiles) or len(tiles) == 0:
         return None
     boxes: list[tuple[int, int, int, int]] = []
     for box in tiles:
