@@ -26,7 +26,7 @@ not absolute times, are what to read.
 Measured choices that are code rather than a number (no constant to re-measure; their figures stay
 beside the code): the residual's Jacobian-materialising JVP (`_fit/residual.py`: 1.5-1.9x less
 time per solve, 24 x 24 scene of `fits/recover.py`); no coarse pyramid level from one start
-(`_fit/fit.py`: 0.5-0.7x the speed otherwise); one scattered index per source in
+(`_fit/fit.py`, `_set_up`: 0.5-0.7x the speed otherwise); one scattered index per source in
 `_filters/aperture.py` (0.4-0.45x the forward time); channels first in
 `tabulated._classes_written_out` and in `layered`'s FFTs; a weight ending in a division in
 `soft._weight_and_slope` (2.8-3.4x slower otherwise); the supersample count's sub-rows summed one

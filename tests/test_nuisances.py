@@ -340,11 +340,11 @@ def test_camera_jpeg_is_compared_in_luma():
 
 
 def test_the_cause_of_an_inconsistency_is_named_from_the_residual_pattern():
-    """`fit._cause`: a residual growing towards the corners names vignetting; one along depth
+    """`verdict._cause`: a residual growing towards the corners names vignetting; one along depth
     edges names occlusion; one alike everywhere names what every pixel shares."""
     import types
 
-    from jaxdof._fit.fit import _cause
+    from jaxdof._fit.verdict import _cause
 
     n = 8
     c = (np.arange(n) + 0.5) / n - 0.5

@@ -50,8 +50,11 @@ statistics -> the orchestration's choices):
 - `strategies.py`: starts, windows, the border band, the coarse-to-fine pyramid;
 - `tiles.py`: the informative tiles of a large photo, and a fit's memory estimate;
 - `treatment.py`: what the scene needs modelled (occlusion, edge weight, footprint): `Treatment`;
-- `select.py`: the photo's say in the treatment and in the camera's nuisances;
 - `verbose.py`: the solver's `verbose` callable, with the lenses each step reached;
+- `path.py`: one fit's solves in order: the starts' coarse solve (a pyramid, or a scout and
+  tiles), the full-resolution solve and its window refits, focus at infinity as a bound;
+- `verdict.py`: the status and the notes in words, and the result of a solve that raised;
+- `select.py`: the photo's say in the treatment and in the camera's nuisances;
 - `fit.py`: `fit_lens`, which orchestrates them.
 
 **For studies and the CLI**: `auto_levels` (the automatic pyramid rule), `max_circle` (the

@@ -26,7 +26,7 @@ a start at infinity): its derivative is `+-1`, never 0, so the Jacobian and the 
 regular at infinity. Where the data pull the focus beyond infinity (`dL/dw > 0` at `w = 0`) the
 loss has a kink at `y = 0` that an unconstrained solver cannot settle on (measured: from N = 3,
 d_f = 30 m with the truth at N = 2, infinity, Levenberg-Marquardt cycled at `y = +-2e-8` with N
-stuck at 2.84); `fit_lens` then treats infinity as an active bound (`fit._settle_at_infinity`).
+stuck at 2.84); `fit_lens` then treats infinity as an active bound (`path._settle_at_infinity`).
 A smooth fold (`w = y^2`) has no kink but a zero derivative at infinity, where the solver then
 crawls (the same fit: `d_f` from 4e6 to 7e6 m in the last 10 of 100 steps).
 

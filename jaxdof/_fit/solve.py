@@ -347,7 +347,7 @@ def finish(model: _Model, solution, args, spec: _Spec, single: bool, band: int):
 def residual_map(residual, args, cells: int = 8) -> Array:
     """The mean squared weighted residual in each of `cells x cells` regions of the photo (all
     targets and channels together), `(cells, cells)`; NaN where nothing is fitted. Where the
-    tiles disagree, its pattern says what the model lacks (`fit._cause`)."""
+    tiles disagree, its pattern says what the model lacks (`verdict._cause`)."""
     _, _, targets, sqrt_w, _ = args
     shape = targets.shape
     live = (jnp.broadcast_to(sqrt_w, shape) > 0).astype(residual.dtype)

@@ -36,7 +36,7 @@ with the parameters), and the cost of a fit grows with the pixels rendered. For 
    box-averaged until its longer side is at most `SCOUT_SIDE` px (`scout_factor`); the tiles are
    chosen from the information at the scout's best solution (its Jacobian, which that solve
    returns), with halos of the full-resolution window's reach over the chosen tiles' depths, and
-   the full-resolution solve starts from the scout's solution (`fit._on_tiles`). Information at
+   the full-resolution solve starts from the scout's solution (`path._on_tiles`). Information at
    a lens near the photo's chooses better tiles than at a start far off: on the 1.5 MP scene of
    `fits/fullres.py` (init f/5.6 at 2 m, truth f/2.8 at 3 m), 2^17 pixels of tiles chosen at the
    init gave standard errors 4.8x (N) and 3.3x (d_f) the whole frame's, chosen at a coarse
@@ -249,7 +249,7 @@ def jacobian_information(jac, shape: tuple[int, ...], used) -> np.ndarray:
 def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarray, int]:
     """`(h, w, P, P)`: each reduced pixel's Fisher information about the free parameters (in the
     solver's coordinates, unit noise) at the first lens of `rows0`, on `scout_problem(p)`, and
-    the reduction factor (tiles chosen at the init: `fit._on_tiles` without a scout solve)."""
+    the reduction factor (tiles chosen at the init: `path._on_tiles` without a scout solve)."""
     (im, dep, tg, sw, b), q = scout_problem(p)
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
     window = reduced_window(forward, rows0[:1], dep, tg.shape, q)
