@@ -1,6 +1,9 @@
 """Fits on informative tiles (`jaxdof/_fit/tiles.py`): the mosaic's interiors are exactly the
 whole frame's render, the choice, the fit on tiles, and the option's checks."""
 
+import dataclasses
+import math
+
 import numpy as np
 import pytest
 
@@ -8,6 +11,7 @@ import jaxdof
 from jaxdof import LocalOcclusion
 from jaxdof._fit import select, tiles as T
 from jaxdof._fit.prepare import prepare_problem
+from jaxdof._scene import OCCLUSION_METHOD
 
 from .helpers import EXACT
 
@@ -84,6 +88,32 @@ def test_choice_follows_information_and_avoids_depth_edges():
         assert T.edge_free(p, chosen)
     across = T.Tiles(((68, 68), (4, 68)), 32, chosen.halo, (S, S))  # the first crop holds row 96
     assert not T.edge_free(p, across)
+
+
+def test_occlusion_is_tried_only_where_the_tiles_can_see_an_edge():
+    """The photo's say tries the occlusion render on a fit on tiles only where a depth edge lies
+    within twice the fitted window of a tile (elsewhere it renders exactly the soft image), crops
+    clipped to the frame; on the whole frame wherever the depth map has an edge."""
+    image, depth, _ = scene()
+    depth[96:, :] = 6.0  # a depth step at row 96
+    # (An image pixel per photo pixel; `ratio` 2: the same step at row 48 of a photo half the size.)
+    assert T.edges_near(depth, 1, [(62, 4)], 32, 4) and not T.edges_near(depth, 1, [(4, 4)], 32, 4)
+    assert T.edges_near(depth, 2, [(31, 2)], 16, 2) and not T.edges_near(depth, 2, [(2, 2)], 16, 2)
+    assert not T.edges_near(depth, 1, [(0, 0)], 32, 50)  # rows 0-82 (clipped at 0): clear
+    assert T.edges_near(depth, 1, [(0, 0)], 32, 66)  # rows 0-98: the step
+    # (A result to hold the treatment, the window and the tiles: a small fit will do.)
+    small = (image[:40, :40], depth[:40, :40])
+    photo = np.asarray(jaxdof.render(*small, TRUTH, max_radius=4.0))
+    fit = jaxdof.fit_lens(*small, photo, TRUTH, tiles=None, starts=1, pyramid=1, **EXACT)
+    t = dataclasses.replace(fit.treatment, occlusion=False, footprint=False)
+    call = {"depth": depth, "method": None, "footprint": None}
+    assert select.alternatives(dataclasses.replace(fit, treatment=t), call) == [
+        ("occlusion on", {"method": OCCLUSION_METHOD})
+    ]
+    window = float(fit.max_radius)
+    for r, seen in ((4, False), (96 - 32 - 2 * math.ceil(window), True)):
+        on_tiles = dataclasses.replace(fit, treatment=t, tiles=((r, 64, 32, 32),))
+        assert bool(select.alternatives(on_tiles, call)) == seen, r
 
 
 class _Stages:

@@ -35,9 +35,10 @@ import math
 import numpy as np
 
 from .. import _tuning
-from .._corrections import depth_edges
+from .._corrections import FOOTPRINT_REACH, depth_edges
 from .._scene import OCCLUSION_METHOD
 from .result import RESULTS, FitResult, code_of
+from .tiles import edges_near
 
 
 #: The chi-square margin by which the photo must prefer a simpler treatment (module docstring).
@@ -66,11 +67,25 @@ def alternatives(result: FitResult, call: dict) -> list[tuple[str, dict]]:
     if call.get("method") is None:
         if t.occlusion:
             out.append(("occlusion off", {"method": "soft"}))
-        elif depth_edges(np.asarray(call["depth"])).any():
+        elif _edges_read(result, call):
             out.append(("occlusion on", {"method": OCCLUSION_METHOD}))
     if t.footprint and call.get("footprint") is None:
         out.append(("footprint off", {"footprint": False}))
     return out
+
+
+def _edges_read(result: FitResult, call: dict) -> bool:
+    """Whether `result`'s pixels can see a depth edge, where alone the occlusion render differs
+    from the soft one: anywhere on the whole frame; on tiles, within twice the fitted window of
+    one (the refit's window, from `result`'s lens, with room for its circles to grow): on tiles
+    clear of every edge the refit would render the same image."""
+    depth = np.asarray(call["depth"])
+    if not result.tiles:
+        return bool(depth_edges(depth).any())
+    boxes = np.asarray(result.tiles, np.int64)
+    reach = 2 * math.ceil(float(np.asarray(result.max_radius))) + FOOTPRINT_REACH
+    corners = [(int(r), int(c)) for r, c in boxes[:, :2]]
+    return edges_near(depth, int(call.get("downsample") or 1), corners, int(boxes[0, 2]), reach)
 
 
 def refit_call(result: FitResult, call: dict, changes: dict) -> dict:

@@ -329,12 +329,19 @@ def choose_tiles(
 
 def edge_free(p, chosen: Tiles) -> bool:
     """Whether no chosen tile's crop (interior and halo) holds a depth edge."""
-    s, crop = p.ratio, (chosen.side + 2 * chosen.halo) * p.ratio
-    for r, c in chosen.corners:
-        r0, c0 = (r - chosen.halo) * s, (c - chosen.halo) * s
-        if depth_edges(p.depth[r0 : r0 + crop, c0 : c0 + crop]).any():
-            return False
-    return True
+    return not edges_near(p.depth, p.ratio, chosen.corners, chosen.side, chosen.halo)
+
+
+def edges_near(depth: np.ndarray, ratio: int, corners, side: int, reach: int) -> bool:
+    """Whether a depth edge lies within `reach` photo pixels of a tile (`corners`, `side`: photo
+    pixels; `depth` at `ratio` image pixels per photo pixel), each crop clipped to the frame:
+    only there can an occlusion render differ from the soft one on the tiles."""
+    for r, c in corners:
+        r0, c0 = max(r - reach, 0) * ratio, max(c - reach, 0) * ratio
+        r1, c1 = (r + side + reach) * ratio, (c + side + reach) * ratio
+        if depth_edges(depth[r0:r1, c0:c1]).any():
+            return True
+    return False
 
 
 def _greedy_d_optimal(mats: np.ndarray, keep: np.ndarray, want: int) -> list[int]:
