@@ -150,11 +150,12 @@ def illuminate(h: int, w: int, cx, cy, dtype, frame_vu=None) -> Float[Array, "h 
     return (1 + cx * u + cy * v)[..., None]
 
 
-def srgb_encode(x: Array) -> Array:
+def srgb_encode(x: Array | np.ndarray, xp=jnp) -> Array:
     """The sRGB transfer curve (IEC 61966-2-1), extended linearly below 0 and by its power law
-    above 1; its derivative is finite everywhere."""
-    hi = jnp.maximum(x, 0.0031308)  # keeps the power's argument (and its derivative) finite
-    return jnp.where(x <= 0.0031308, 12.92 * x, 1.055 * hi ** (1 / 2.4) - 0.055)
+    above 1; its derivative is finite everywhere. `xp=np` on the host, in `x`'s precision."""
+    t = x.dtype.type(0.0031308) if xp is np else 0.0031308
+    hi = xp.maximum(x, t)  # keeps the power's argument (and its derivative) finite
+    return xp.where(x <= t, 12.92 * x, 1.055 * hi ** (1 / 2.4) - 0.055)
 
 
 def luma(x: Float[Array, "*s 3"]) -> Float[Array, "*s 1"]:
@@ -202,27 +203,31 @@ def camera(
     return x[..., 0] if grey else x
 
 
+# Rows per band of `chroma_detail` (temporaries of a few MB at 6000 px wide).
+_CHROMA_BAND = 256
+
+
 def chroma_detail(photo: np.ndarray) -> float:
     r"""How much colour detail at the pixel scale a colour photo has, relative to its luma's:
     the energy of the second differences `[1, -2, 1]` (both axes) of the sRGB-encoded chroma
     `Cb, Cr` over that of the luma `Y'`. A camera JPEG's chroma, stored at half resolution and
     interpolated, has almost none (measured in `fits/captures.py`); a linear or 4:4:4 photo keeps
     its scene's colour detail and its noise (white noise in R, G, B puts about 0.9 of the luma's
-    energy in each chroma channel). `nan` for a grey photo."""
-    x = np.asarray(photo, np.float64)
+    energy in each chroma channel). `nan` for a grey photo. In float32, summed in float64."""
+    x = np.asarray(photo, np.float32)
     if x.ndim != 3 or x.shape[-1] != 3 or min(x.shape[:2]) < 3:
         return float("nan")
-    e = np.asarray(srgb_encode(jnp.asarray(x)))
-    y = e @ np.asarray(_LUMA)
-    cb = e @ np.array([-0.168736, -0.331264, 0.5])
-    cr = e @ np.array([0.5, -0.418688, -0.081312])
-
-    def energy(c):
-        d2x = c[:, :-2] - 2 * c[:, 1:-1] + c[:, 2:]
+    to_ycc = np.array([_LUMA, (-0.168736, -0.331264, 0.5), (0.5, -0.418688, -0.081312)], np.float32)
+    sums = np.zeros(3)  # Y', Cb, Cr
+    # In bands of rows, each with the two rows below it for the vertical differences (a 24 MP
+    # photo at once: temporaries of gigabytes).
+    b = _CHROMA_BAND
+    for r0 in range(0, x.shape[0], b):
+        c = np.asarray(srgb_encode(x[r0 : r0 + b + 2], xp=np)) @ to_ycc.T  # (rows, W, 3)
+        d2x = c[:b, :-2] - 2 * c[:b, 1:-1] + c[:b, 2:]
         d2y = c[:-2] - 2 * c[1:-1] + c[2:]
-        return float(np.sum(d2x**2) + np.sum(d2y**2))
-
-    luma_energy = energy(y)
-    if luma_energy <= 0:
+        for d in (d2x, d2y):
+            sums += np.einsum("hwc,hwc->c", d, d, dtype=np.float64)
+    if sums[0] <= 0:
         return float("nan")
-    return (energy(cb) + energy(cr)) / luma_energy
+    return float((sums[1] + sums[2]) / sums[0])
