@@ -150,9 +150,14 @@ def illuminate(h: int, w: int, cx, cy, dtype, frame_vu=None) -> Float[Array, "h 
     return (1 + cx * u + cy * v)[..., None]
 
 
-def srgb_encode(x: Array | np.ndarray, xp=jnp) -> Array:
+def srgb_encode(x: Array) -> Array:
     """The sRGB transfer curve (IEC 61966-2-1), extended linearly below 0 and by its power law
-    above 1; its derivative is finite everywhere. `xp=np` on the host, in `x`'s precision."""
+    above 1; its derivative is finite everywhere."""
+    return _srgb(x, jnp)
+
+
+def _srgb(x, xp):
+    """`srgb_encode` in `xp` (`np` on the host, in `x`'s precision)."""
     t = x.dtype.type(0.0031308) if xp is np else 0.0031308
     hi = xp.maximum(x, t)  # keeps the power's argument (and its derivative) finite
     return xp.where(x <= t, 12.92 * x, 1.055 * hi ** (1 / 2.4) - 0.055)
@@ -223,7 +228,7 @@ def chroma_detail(photo: np.ndarray) -> float:
     # photo at once: temporaries of gigabytes).
     b = _CHROMA_BAND
     for r0 in range(0, x.shape[0], b):
-        c = np.asarray(srgb_encode(x[r0 : r0 + b + 2], xp=np)) @ to_ycc.T  # (rows, W, 3)
+        c = _srgb(x[r0 : r0 + b + 2], np) @ to_ycc.T  # (rows, W, 3)
         d2x = c[:b, :-2] - 2 * c[:b, 1:-1] + c[:b, 2:]
         d2y = c[:-2] - 2 * c[1:-1] + c[2:]
         for d in (d2x, d2y):
