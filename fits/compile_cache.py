@@ -33,7 +33,7 @@ import tempfile
 import time
 
 from _common import command, git_state, machine_info, result_path, write_markdown
-from fullres import SIZES, make_scene
+from fullres import SIZES, make_scene, make_scenes_apart
 
 
 _STAGE = re.compile(r"^  (.+): (\d+\.\d+) s \((\d+\.\d+) s\)$")
@@ -84,6 +84,7 @@ def main(argv=None) -> None:
         "status | focus error |",
         "|---|---|---|---|---|---|---|---|",
     ]
+    make_scenes_apart(args.sizes)
     for label in args.sizes:
         sc = make_scene(label)
         rows: dict[str, list[dict]] = {"off": [], "cold": [], "warm": []}
