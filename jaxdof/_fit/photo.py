@@ -169,11 +169,6 @@ def luma(x: Float[Array, "*s 3"]) -> Float[Array, "*s 1"]:
     return (_LUMA[0] * e[..., :1] + _LUMA[1] * e[..., 1:2] + _LUMA[2] * e[..., 2:3]).astype(x.dtype)
 
 
-def luma_np(x: np.ndarray) -> np.ndarray:
-    """`luma` in numpy (targets are prepared on the host)."""
-    return np.asarray(luma(jnp.asarray(x)))
-
-
 def camera(
     raw: Float[Array, "t h w *c"],
     params: dict[str, Array],
