@@ -101,9 +101,12 @@ def test_occlusion_is_tried_only_where_the_tiles_can_see_an_edge():
     assert T.edges_near(depth, 2, [(31, 2)], 16, 2) and not T.edges_near(depth, 2, [(2, 2)], 16, 2)
     assert not T.edges_near(depth, 1, [(0, 0)], 32, 50)  # rows 0-82 (clipped at 0): clear
     assert T.edges_near(depth, 1, [(0, 0)], 32, 66)  # rows 0-98: the step
-    # (A result to hold the treatment, the window and the tiles: a small fit will do.)
-    small = (image[:40, :40], depth[:40, :40])
-    photo = np.asarray(jaxdof.render(*small, TRUTH, max_radius=4.0))
+    # (A result to hold the treatment, the window and the tiles: a small fit will do. Its inputs
+    # read-only: `fit_lens` uses the caller's arrays without copies and must never write to them.)
+    small = (image[:40, :40].copy(), depth[:40, :40].copy())
+    photo = np.asarray(jaxdof.render(*small, TRUTH, max_radius=4.0)).copy()
+    for x in (*small, photo):
+        x.flags.writeable = False
     fit = jaxdof.fit_lens(*small, photo, TRUTH, tiles=None, starts=1, pyramid=1, **EXACT)
     t = dataclasses.replace(fit.treatment, occlusion=False, footprint=False)
     call = {"depth": depth, "method": None, "footprint": None}
