@@ -141,6 +141,10 @@ def main(argv=None) -> None:
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--render-only", action="store_true", help="only make the missing photos")
     args = ap.parse_args(argv)
+    if args.render_only:
+        for label in args.sizes:
+            make_files(label)
+        return
     lines = [
         "# A chart calibration at camera sizes: `jaxdof calibrate` cold and warm",
         "",
@@ -154,10 +158,6 @@ def main(argv=None) -> None:
         "success | focus error (its stderr) | K error |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    if args.render_only:
-        for label in args.sizes:
-            make_files(label)
-        return
     # The photos are made in a process of their own: a timed child forked from a parent that
     # rendered 24 MP in-process reports the parent's resident set as its own peak (`ru_maxrss`
     # is kept across exec: 5.1 GB where the calibration alone holds 2.7 GB).

@@ -414,8 +414,6 @@ def _set_up(
 # The registration a fit allows for before it has one (photo pixels): a shift of up to 2 px and
 # a magnification of up to 2 %, the resampling kernel's reach added (`_registration_reach`).
 _REGISTRATION_SHIFT = 2.0
-
-
 _REGISTRATION_MAGNIFICATION = 0.02
 
 

@@ -158,9 +158,8 @@ def srgb_encode(x: Array) -> Array:
 
 def _srgb(x, xp):
     """`srgb_encode` in `xp` (`np` on the host, in `x`'s precision)."""
-    t = x.dtype.type(0.0031308) if xp is np else 0.0031308
-    hi = xp.maximum(x, t)  # keeps the power's argument (and its derivative) finite
-    return xp.where(x <= t, 12.92 * x, 1.055 * hi ** (1 / 2.4) - 0.055)
+    hi = xp.maximum(x, 0.0031308)  # keeps the power's argument (and its derivative) finite
+    return xp.where(x <= 0.0031308, 12.92 * x, 1.055 * hi ** (1 / 2.4) - 0.055)
 
 
 def luma(x: Float[Array, "*s 3"]) -> Float[Array, "*s 1"]:
@@ -214,7 +213,7 @@ def chroma_detail(photo: np.ndarray) -> float:
     interpolated, has almost none (measured in `fits/captures.py`); a linear or 4:4:4 photo keeps
     its scene's colour detail and its noise (white noise in R, G, B puts about 0.9 of the luma's
     energy in each chroma channel). `nan` for a grey photo. In float32, summed in float64."""
-    x = np.asarray(photo, np.float32)
+    x = np.asarray(photo)
     if x.ndim != 3 or x.shape[-1] != 3 or min(x.shape[:2]) < 3:
         return float("nan")
     to_ycc = np.array([_LUMA, (-0.168736, -0.331264, 0.5), (0.5, -0.418688, -0.081312)], np.float32)
@@ -223,7 +222,7 @@ def chroma_detail(photo: np.ndarray) -> float:
     # photo at once: temporaries of gigabytes).
     b = _CHROMA_BAND
     for r0 in range(0, x.shape[0], b):
-        c = _srgb(x[r0 : r0 + b + 2], np) @ to_ycc.T  # (rows, W, 3)
+        c = _srgb(x[r0 : r0 + b + 2].astype(np.float32, copy=False), np) @ to_ycc.T  # (rows, W, 3)
         d2x = c[:b, :-2] - 2 * c[:b, 1:-1] + c[:b, 2:]
         d2y = c[:-2] - 2 * c[1:-1] + c[2:]
         for d in (d2x, d2y):
