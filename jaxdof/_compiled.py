@@ -18,6 +18,8 @@ from pathlib import Path
 
 import jax
 
+from . import _traced
+
 
 def memory_maps() -> int:
     """The memory mappings this process holds (Linux `/proc/self/maps`); 0 where unknown."""
@@ -73,6 +75,10 @@ def enable_compilation_cache(
     not kept forever, and it is bounded to `max_bytes` (least recently used evicted). The `jaxdof`
     command line calls this unless given `--no-cache`.
 
+    It also keeps `fit_lens`'s traced stages in `traced/` below the folder (`jax.export`, keyed
+    by the stage's static arguments, its shapes, jaxdof's source and the versions of JAX and its
+    libraries: `jaxdof/_traced.py`), so that the next process neither traces nor lowers them.
+
     **Arguments:**
 
     - `path`: the folder (created if missing); `None`: `default_cache_dir()`.
@@ -99,4 +105,5 @@ def enable_compilation_cache(
     jax.config.update("jax_persistent_cache_min_compile_time_secs", _CACHE_MIN_COMPILE_SECONDS)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     jax.config.update("jax_compilation_cache_max_size", int(max_bytes))
+    _traced.use_folder(folder / "traced")
     return folder

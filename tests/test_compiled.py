@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import jaxdof
+from jaxdof import _traced
 from jaxdof._cli.parse import build_parser
 from jaxdof._compiled import default_cache_dir
 
@@ -25,9 +26,11 @@ _KEYS = (
 def restore_cache_config():
     """The test session's own cache settings (`conftest.py`), put back after the test."""
     saved = {k: getattr(jax.config, k) for k in _KEYS}
+    traced = _traced.folder()
     yield
     for k, v in saved.items():
         jax.config.update(k, v)
+    _traced.use_folder(traced)
 
 
 def test_default_folder_follows_the_environment(monkeypatch, tmp_path):
@@ -49,6 +52,7 @@ def test_enable_switches_on_jax_cache(tmp_path, restore_cache_config):
     assert folder == tmp_path / "c" and folder.is_dir()
     assert jax.config.jax_compilation_cache_dir == str(folder)
     assert jax.config.jax_compilation_cache_max_size == 10**8
+    assert _traced.folder() == folder / "traced"  # the traced stages beside the programs
 
 
 def test_enable_refuses_a_folder_it_cannot_write(tmp_path, restore_cache_config):

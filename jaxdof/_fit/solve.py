@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, ArrayLike
 
+from .. import _traced
 from .._filters import AbstractMethod
 from .._lens import ThinLens
 from .adequacy import adequacy, rounding_noise
@@ -572,11 +573,11 @@ def run_stage(name: str, stage: Callable, *args):
     under `name`."""
     log, watch = _STAGE_LOG.get(), _STAGE_WATCH.get()
     if log is None and watch is None:
-        return stage(*args)
+        return _traced.call(stage, *args)
     if watch is not None:
         watch(name, None)
     t = time.perf_counter()
-    out = jax.block_until_ready(stage(*args))
+    out = jax.block_until_ready(_traced.call(stage, *args))
     seconds = time.perf_counter() - t
     if log is not None:
         log.append((name, seconds))
