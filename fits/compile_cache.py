@@ -70,6 +70,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", nargs="+", default=["1.5"], choices=list(SIZES))
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--tag", default="", help="suffix of the report's name")
     args = ap.parse_args(argv)
     lines = [
         "# The persistent compilation cache: `jaxdof fit` again on files of the same size",
@@ -119,7 +120,7 @@ def main(argv=None) -> None:
         "compiling included where the cache has none; the others: the statistics, the nuisance "
         "tests); the rest of a run is reading the files, tracing and the host's choices.",
     ]
-    path = write_markdown(result_path("compile_cache"), lines)
+    path = write_markdown(result_path("compile_cache", tag=args.tag), lines)
     print(f"wrote {path}", file=sys.stderr)
 
 

@@ -3,16 +3,16 @@
 JAX's persistent compilation cache (`jaxdof.enable_compilation_cache`) skips XLA's compiler, but
 its key is the lowered program, so every process still traces each stage of a fit (the Python
 of the solver, the filters and their derivatives, under `vmap` and `jvp`) and lowers it before
-it can look the executable up. On a warm 1.5 MP `jaxdof fit` that was about 24 s of 35 s (a
-profile: 16.5 s tracing, 6.8 s lowering, 10 s running). Here a compiled stage of `fit_lens`
-(`run_stage`) is kept as a `jax.export.Exported`, keyed by everything the trace depends on:
+it can look the executable up: most of a warm run on a photo of a few megapixels. Here a
+compiled stage of `fit_lens` (`run_stage`) is kept as a `jax.export.Exported`, keyed by
+everything the trace depends on:
 
 - the stage (module and name) and every argument that is not an array, described in full (the
   types, fields and values of the equinox modules, solvers and layouts; functions by name);
 - the shapes and dtypes of the array arguments;
 - the source of the jaxdof package (a digest of its files), the versions of JAX, jaxlib, equinox,
   optimistix, lineax and numpy, the JAX settings that change a trace (x64, default precisions,
-  promotion rules) and the backend.
+  promotion rules), the backend, and the tuning constants as they are (`_tuning.override`).
 
 A second process with the same key deserializes the program and calls it (its executable then
 comes from the compilation cache): no tracing. Only what can be named exactly is keyed: a class
@@ -113,14 +113,25 @@ def _source_digest() -> str:
     return h.hexdigest()
 
 
-def _environment() -> list:
+@functools.cache
+def _installed() -> list:
+    """The source digest, the libraries' versions and the device: fixed for a process."""
     from importlib.metadata import version
+
+    packages = [version(p) for p in ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")]
+    device = jax.devices()[0]
+    return [_source_digest(), packages, device.platform, device.device_kind]
+
+
+def _environment() -> list:
+    """What a trace reads besides its arguments: the installed code, the JAX settings, and the
+    tuning constants (`_tuning.override` replaces them for a while; the filters read them as they
+    are traced)."""
+    from . import _tuning
 
     names = ("enable_x64", "default_matmul_precision", "numpy_rank_promotion")
     settings = [str(_setting(f"jax_{k}")) for k in (*names, "numpy_dtype_promotion")]
-    packages = [version(p) for p in ("jax", "jaxlib", "equinox", "optimistix", "lineax", "numpy")]
-    device = jax.devices()[0]
-    return [_source_digest(), packages, settings, device.platform, device.device_kind]
+    return [_installed(), settings, [repr(getattr(_tuning, k)) for k in _tuning._NAMES]]
 
 
 def _named(obj) -> list:

@@ -600,6 +600,8 @@ BAD = [  # (argv, text the one line must contain)
     ([*F, "--downsample", "2"], "target.npy: target has shape (24, 32, 3) but image sharp.png"),
     ([*F[:3], "small3.npy", *F[4:]], "small3.npy: target has shape (24, 31, 3)"),
     ([*F[:3], "missing.npy", *F[4:]], "missing.npy: no such file"),
+    # the photos are read beside the image: the first broken file, in order, is the one named
+    (["fit", "garbage.png", F[2], "missing.npy", *F[4:]], "garbage.png: not a valid PNG"),
     ([*F, "--free", "focal_length", "f_number"], "--free focal_length f_number: one photo"),
     ([*F, "--shared", "focal_length"], "shared must be a subset of free"),
     ([*F, "--free", "aperture"], "argument --free: invalid choice"),

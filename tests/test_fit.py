@@ -748,6 +748,23 @@ def test_pyramid_downsample():
 
 
 @pytest.mark.parametrize(
+    "shape, axes",
+    [((9, 12), (0, 1)), ((9, 13, 3), (0, 1)), ((2, 10, 7, 3), (1, 2)), ((1, 10, 8, 1), (1, 2))],
+)
+def test_box2_is_the_mean_of_each_block(shape, axes):
+    """The pyramid's 2 x 2 average, summed in a fixed order (`strategies._box2`): numpy's mean of
+    each block to its last bit or one unit in it (numpy's own order is an implementation's)."""
+    x = np.random.default_rng(4).uniform(0.1, 3.0, shape).astype(np.float32)
+    a, b = axes
+    h, w = shape[a] // 2 * 2, shape[b] // 2 * 2
+    cut = x[(slice(None),) * a + (slice(0, h), slice(0, w))]
+    view = cut.reshape(cut.shape[:a] + (h // 2, 2, w // 2, 2) + cut.shape[b + 1 :])
+    box = strategies._box2(x, axes)
+    assert box.dtype == np.float32
+    np.testing.assert_array_max_ulp(box, view.mean(axis=(a + 1, a + 3)), maxulp=1)
+
+
+@pytest.mark.parametrize(
     "pyramid, match",
     [
         (-1, "pyramid must be None"),
