@@ -86,7 +86,11 @@ def call(stage: Callable, *args) -> Any:
     if entry is None:
         return stage(*args)
     run, template = entry
-    return _rebuild(template, list(run(*leaves)))
+    try:
+        return _rebuild(template, list(run(*leaves)))
+    except Exception:  # noqa: BLE001 - a kept stage that does not run or rebuild: as before
+        _loaded[key] = None
+        return stage(*args)
 
 
 def _setting(name: str):

@@ -125,6 +125,19 @@ def test_a_damaged_file_is_traced_again(kept):
     assert path.stat().st_size > 100  # rewritten whole
 
 
+def test_a_kept_stage_that_cannot_be_rebuilt_runs_as_before(kept):
+    """A file whose outputs name a class that is not there (a stale or foreign entry): the stage
+    runs as it would without the cache."""
+    run_stage("test", _stage, *_args())
+    (path,) = _files(kept)
+    raw = path.read_bytes()
+    n = int.from_bytes(raw[:8], "little")
+    template = raw[8 : 8 + n].replace(b'"EnumerationItem"', b'"Missing"')
+    path.write_bytes(len(template).to_bytes(8, "little") + template + raw[8 + n :])
+    _traced._loaded.clear()
+    _same(_stage(*_args()), run_stage("test", _stage, *_args()))
+
+
 def test_debug_nans_runs_the_stage_untouched(kept):
     with jax.debug_nans(True):
         run_stage("test", _stage, *_args())

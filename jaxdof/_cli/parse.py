@@ -242,9 +242,10 @@ def _add_cache_option(p: argparse.ArgumentParser) -> None:
         "--no-cache",
         dest="cache",
         action="store_false",
-        help="compile every program anew: do not keep them in (or load them from) the cache "
-        "folder ($JAXDOF_CACHE_DIR, else $XDG_CACHE_HOME/jaxdof, else ~/.cache/jaxdof), which "
-        "makes the same command on photos of the same size start in seconds",
+        help="trace and compile every program anew: do not keep them in (or load them from) "
+        "the cache folder ($JAXDOF_CACHE_DIR, else $XDG_CACHE_HOME/jaxdof, else "
+        "~/.cache/jaxdof), which makes the same command on photos of the same size start in "
+        "seconds",
     )
 
 
