@@ -287,6 +287,40 @@ def test_a_large_hole_keeps_its_full_reach():
     assert kept[inside].all()
 
 
+def test_refits_prepare_the_same_arrays_once():
+    """Inside `prepared_once` (one `fit_lens` call) a second `prepare_problem` of the same input
+    objects with another starting lens reuses the first's arrays (the holes filled, the checks)
+    and takes the new lens; the same problem as prepared alone, and no memo outside."""
+    from jaxdof._fit import prepare
+
+    rng = np.random.default_rng(2)
+    image = rng.uniform(0.05, 1, (24, 32, 3)).astype(np.float32)
+    depth = np.tile(np.linspace(1.5, 3.0, 32, dtype=np.float32), (24, 1))
+    depth[5:8, 9:12] = np.nan  # a hole: filled once
+    lenses = [
+        jaxdof.ThinLens.from_sensor(0.05, n, d_f, sensor_width=0.0048, image_width=32)
+        for n, d_f in ((2.8, 2.0), (4.0, 2.5))
+    ]
+    model = jaxdof.DefocusModel()
+
+    def prepared(lens, luma=False):
+        args = (image, depth, image, lens, None, model, ("f_number",), (), (), luma)
+        return prepare.prepare_problem(*args)
+
+    alone = [prepared(lens) for lens in lenses]
+    assert alone[0].depth is not alone[1].depth  # prepared anew each time
+    with prepare.prepared_once():
+        first, second = (prepared(lens) for lens in lenses)
+        grey = prepared(lenses[1], luma=True)
+    assert second.depth is first.depth and second.d is first.d and second.targets is first.targets
+    assert grey.targets.shape[-1] == 1  # the luma: another set of arrays
+    for kept, fresh in zip((first, second), alone):
+        np.testing.assert_array_equal(kept.base, fresh.base)
+        for name in ("image", "depth", "targets", "sqrt_w", "d"):
+            np.testing.assert_array_equal(getattr(kept, name), getattr(fresh, name))
+        np.testing.assert_array_equal(kept.holes, fresh.holes)
+
+
 @pytest.mark.parametrize("n", [8, 24, 64, 200])
 def test_depth_edges_are_jumps_not_slopes(n):
     """`depth_edges` (issue 33): no edge on a ramp of any steepness (linear in depth, or a plane:

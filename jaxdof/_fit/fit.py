@@ -36,6 +36,7 @@ from .prepare import (
     forward_model,
     leave_out_holes,
     prepare_problem,
+    prepared_once,
 )
 from .residual import _Model
 from .result import RESULTS, FitResult, code_of
@@ -197,17 +198,18 @@ def fit_lens(
         call["depth"] = upsample_depth(np.asarray(depth), np.asarray(image))
     else:
         coarse = ()
-    result = _fit_treated(**call)
-    # The photo's say in the treatment (`select.py`): each choice of the scene's changed in turn,
-    # kept only where the photo prefers it ...
-    rounding = rounding_sigma(targets, np.asarray(result.loss).dtype)
-    result = _photo_says(result, call, rounding)
-    # ... and in what the camera added: each nuisance fitted where a score test at the fit
-    # without it rejects and it explains more than the model's error (`select.with_nuisances`),
-    # the caller's choices as given ...
-    decided = with_nuisances(result, call, _fit_treated, nuisance_floor(targets), asked)
-    # ... and where the photo asked for one, the treatment asked again with it.
-    result = _asked_again(decided, call, asked, rounding)
+    with prepared_once():  # the refits below prepare the same arrays: once
+        result = _fit_treated(**call)
+        # The photo's say in the treatment (`select.py`): each choice of the scene's changed in
+        # turn, kept only where the photo prefers it ...
+        rounding = rounding_sigma(targets, np.asarray(result.loss).dtype)
+        result = _photo_says(result, call, rounding)
+        # ... and in what the camera added: each nuisance fitted where a score test at the fit
+        # without it rejects and it explains more than the model's error
+        # (`select.with_nuisances`), the caller's choices as given ...
+        decided = with_nuisances(result, call, _fit_treated, nuisance_floor(targets), asked)
+        # ... and where the photo asked for one, the treatment asked again with it.
+        result = _asked_again(decided, call, asked, rounding)
     if coarse and result.treatment is not None:
         treatment = dataclasses.replace(result.treatment, depth_upsampled=tuple(coarse))
         result = dataclasses.replace(result, treatment=treatment)

@@ -3,8 +3,11 @@ for `fit_lens`, jax under `solve_lens`), and the forward model from `model=` or 
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import math
+from collections.abc import Iterator
 
 import jax
 import jax.numpy as jnp
@@ -150,7 +153,61 @@ def prepare_problem(
     image, depth, targets, init, weight, model: AbstractForwardModel, free, shared,
     nuisances: tuple[str, ...] = (), luma: bool = False,
 ) -> Problem:  # fmt: skip
-    """`_prepare` in numpy plus the checks that need values, and the layout: one `Problem`."""
+    """`_prepare` in numpy plus the checks that need values, and the layout: one `Problem`.
+
+    Inside `prepared_once`, the arrays prepared from the same input objects are reused: the
+    refits of one `fit_lens` call differ from its first fit in the lens, not in the data."""
+    arrays = _prepared_arrays(image, depth, targets, weight, model, luma, init)
+    image, depth, targets, sqrt_w, single, holes, d, ratio = arrays
+    base = np.asarray(_base(np, init, targets.shape[0]).astype(image.dtype))
+    b = np.asarray(base, np.float64)
+    if np.any(np.isnan(d)) or not np.all(d > b[:, 0].max()):
+        raise ValueError(
+            f"depth must exceed the focal length everywhere (metres; found min depth {np.nanmin(d)} m "
+            f"or NaN, focal length {b[:, 0].max()} m)"
+        )
+    spec = _Spec(free, shared, targets.shape[0], nuisances, luma)
+    layout = spec.layout(base, depth)
+    fcap = np.asarray(layout.fcap, np.float64)
+    if np.any(b[:, 0] >= fcap):
+        raise ValueError(
+            "init.focal_length must be below the nearest depth (and the focus distance): "
+            f"got {b[:, 0]} m against a bound of {fcap} m"
+        )
+    return Problem(
+        image, depth, targets, sqrt_w, base, bool(single), ratio, spec, layout, d, b, fcap, holes
+    )
+
+
+# `prepared_once`'s arrays, by the identity of the inputs they were prepared from.
+_PREPARED: contextvars.ContextVar[dict | None] = contextvars.ContextVar(
+    "jaxdof_prepared", default=None
+)
+
+
+@contextlib.contextmanager
+def prepared_once() -> Iterator[None]:
+    """Within the block, `prepare_problem` prepares each set of input arrays once: a 24 MP
+    problem (its holes filled, its checks, its float64 depth) costs seconds, and `fit_lens`'s
+    refits (the photo's say, the nuisances) prepare the same inputs again."""
+    token = _PREPARED.set({})
+    try:
+        yield
+    finally:
+        _PREPARED.reset(token)
+
+
+def _prepared_arrays(image, depth, targets, weight, model, luma: bool, init) -> tuple:
+    """The arrays of `prepare_problem` that do not depend on the lens: `(image, depth, targets,
+    sqrt_w, single, holes, d, ratio)`, from `prepared_once`'s memo where the same objects were
+    prepared (held there, so their ids stay theirs)."""
+    memo = _PREPARED.get() if np.ndim(image) in (2, 3) else None  # else `_prepare` says why
+    inputs = (image, depth, targets, weight)
+    key = ()
+    if memo is not None:
+        key = (*map(id, inputs), bool(luma), tuple(model.photo_shape(tuple(np.shape(image)))))
+        if key in memo:
+            return memo[key][1]
     # Depth holes (NaN, 0, negative: no data) are filled so that the render runs; the photo
     # pixels their light reaches leave the residual once the window is known (`leave_out_holes`).
     holes = depth_holes(depth) if np.ndim(depth) == 2 else None
@@ -162,33 +219,20 @@ def prepare_problem(
     # and one transfer of a few small results back, not one device call per array operation.
     *arrays, single = _prepare(image, depth, targets, init, weight, model, xp=np)
     # (numpy arrays already: `np.asarray` makes no copies, it tells the type checker so.)
-    image, depth, targets, sqrt_w, base = (np.asarray(x) for x in arrays)
-    d = np.asarray(depth, np.float64)
-    b = np.asarray(base, np.float64)
+    image, depth, targets, sqrt_w, _ = (np.asarray(x) for x in arrays)
     for name, x in (("image", image), ("targets", targets)):
         if not np.all(np.isfinite(x)):
             raise ValueError(
                 f"{name} contains NaN or inf; mask such pixels with weight=0 and set them to 0"
             )
-    if np.any(np.isnan(d)) or not np.all(d > b[:, 0].max()):
-        raise ValueError(
-            f"depth must exceed the focal length everywhere (metres; found min depth {np.nanmin(d)} m "
-            f"or NaN, focal length {b[:, 0].max()} m)"
-        )
-    spec = _Spec(free, shared, targets.shape[0], nuisances, luma)
-    if spec.luma:
+    if luma:
         targets, sqrt_w = (np.asarray(x) for x in luma_targets(targets, sqrt_w))
-    layout = spec.layout(base, depth)
-    fcap = np.asarray(layout.fcap, np.float64)
-    if np.any(b[:, 0] >= fcap):
-        raise ValueError(
-            "init.focal_length must be below the nearest depth (and the focus distance): "
-            f"got {b[:, 0]} m against a bound of {fcap} m"
-        )
     _, ratio = photo_and_ratio(model, image.shape)
-    return Problem(
-        image, depth, targets, sqrt_w, base, bool(single), ratio, spec, layout, d, b, fcap, holes
-    )
+    d = np.asarray(depth, np.float64)
+    out = (image, depth, targets, sqrt_w, single, holes, d, ratio)
+    if memo is not None:
+        memo[key] = (inputs, out)
+    return out
 
 
 def luma_targets(targets, sqrt_w):

@@ -157,10 +157,10 @@ def _check_pyramid(pyramid, shape: tuple[int, int]) -> int | None:
 def _box2(x: np.ndarray, axes: tuple[int, int]) -> np.ndarray:
     """2 x 2 box average over two adjacent `axes` (H, W) of `x`, dropping an odd last row/column.
 
-    The four pixels summed in the order of numpy's `mean` over the two axes of a reshaped view
-    (each row's pair first; then the two pair sums where nothing follows the columns, else one
-    by one), so the same values, at 4-5x its speed (a strided reduction): a 24 MP colour frame
-    in 0.2 s."""
+    The four pixels summed in the order in which numpy 2's `mean` over the two axes of a
+    reshaped view sums them (each row's pair first; then the two pair sums where nothing
+    follows the columns, else one by one), so the same values (checked bitwise against it), at
+    4-5x its speed: no strided reduction (a 24 MP colour frame in 0.2 s)."""
     a, b = axes
     h, w = x.shape[a] // 2 * 2, x.shape[b] // 2 * 2
     x = x[(slice(None),) * a + (slice(0, h), slice(0, w))]
