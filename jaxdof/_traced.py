@@ -155,17 +155,19 @@ def _walk(x, leaves: list):
         leaves.append(x)
         weak = bool(getattr(getattr(x, "aval", x), "weak_type", False))
         return ["leaf", len(leaves) - 1, list(np.shape(x)), str(x.dtype), weak]
-    if x is None or isinstance(x, (bool, int, str)):
+    # Exact types only: a subclass (an IntEnum, a namedtuple) would come back as its base.
+    kind = type(x)
+    if x is None or kind in (bool, int, str):
         return [type(x).__name__, x]
-    if isinstance(x, float):
+    if kind is float:
         return ["float", repr(x)]  # exact: the shortest repr round-trips
-    if isinstance(x, (tuple, list)):
+    if kind in (tuple, list):
         return [type(x).__name__, [_walk(v, leaves) for v in x]]
-    if isinstance(x, dict):
+    if kind is dict:
         if not all(isinstance(k, str) for k in x):
             raise _Unkeyable(x)
         return ["dict", [[k, _walk(x[k], leaves)] for k in sorted(x)]]
-    if isinstance(x, frozenset):
+    if kind is frozenset:
         if any(eqx.is_array(v) for v in x):
             raise _Unkeyable(x)
         items = [_walk(v, leaves) for v in x]
