@@ -813,6 +813,10 @@ STUDIES: dict[str, Callable[[Config], Result]] = {
     "SPANS_MIN_RADIUS": study_spans_min_radius,
     "JITTER_SPANS_MIN_RADIUS": study_jitter_spans_min_radius,
     "SUPERSAMPLE_SPANS_MIN_RADIUS": study_supersample_spans_min_radius,
+    "SPANS_MIN_RADIUS_JACOBIAN": not_measured(
+        "SPANS_MIN_RADIUS_JACOBIAN",
+        "measured inside a fit's Jacobian by `python fits/fit_spans.py` (its own study).",
+    ),
     "COMPARE_ALL_MAX": study_compare_all_max,
     "UNROLL_ROWS": study_unroll_rows,
     "UNROLL_LEVELS": study_unroll_levels,

@@ -73,6 +73,25 @@ from collections.abc import Iterator
 #: vs 69, 32: 68 vs 151, 48: 190 vs 165, 64: 329 vs 211 (R = 16's default 3.7x the faster path).
 SPANS_MIN_RADIUS = 40.0
 
+#: Inside a Jacobian of renders (`jaxdof/_filters/spans.in_jacobian`: `fit_lens`'s residual builds
+#: one per solver step, the free fields' tangents sharing one primal), the soft filter takes row
+#: spans from this window radius on, by the image's channels `C` (the entry of the first key
+#: `>= C`). The dense gather's tangent differentiates the exact area of every tap of the window;
+#: the spans' only of the boundary taps, so spans win far earlier than forward; but their scatters
+#: carry every channel, while the dense gather's weights serve all channels at once.
+#:
+#: Measured 2026-12-06 (`python fits/fit_spans.py`, report `fits/results/fit_spans.md`; 2-core
+#: AMD EPYC shared with other jobs; jax 0.10.2; float32): `jax.jacfwd` of `jaxdof.render(...,
+#: method="soft")` with respect to (N, d_f) on a mosaic of 25 tiles with halos of the window,
+#: circles from 0 to (W - 1) / 1.5 px, medians of 5 rounds in turns. Spans / dense time:
+#:
+#:     W      8     12    16    20    24    32    40    48
+#:     C=1  1.29  1.01  0.90  0.61  0.61  0.40  0.35  0.28
+#:     C=3  3.95  3.00  2.62  1.65  1.31  1.05   -    0.64
+#:
+#: The forward render alone is within 0.83-1.33x between the paths at every one of these windows.
+SPANS_MIN_RADIUS_JACOBIAN: dict[int | float, float] = {1: 16.0, math.inf: 40.0}
+
 #: `method="jitter"` takes row spans from this window radius on, by the number of points `n`
 #: (`spans.crossover_for`: the entry of the first key `>= n`). The dense gather compares `n`
 #: thresholds at `~pi R^2` taps, the spans only at `O(R)` boundary taps but pay scatters that do not
@@ -341,7 +360,7 @@ FIT_MEMORY = {"fixed": 0.4 * 2**30, "frame": 75.0, "fitted": 640.0}
 #: under this (px). Spreading a pinhole pixel with the circle-pixel overlap adds a blur variance
 #: of 1/6 px^2 (both axes) to the lens's r^2/2, so K comes out short by about 1/(6 r^2): 1e-4 at
 #: 40 px. The bar is what a fit can detect, not the 5 % goal: on large photos the standard errors
-#: are that small. Measured (session 15, `fits/fullres.py --sizes 1.5 6 --defaults-only`): with the
+#: are that small. Measured (`fits/fullres.py --sizes 1.5 6 --defaults-only`, 2026-12-02): with the
 #: bar at 5.8 px (0.5 % of K) the 6 MP photo, which integrates over its pixels, was fitted without
 #: the correction and came back `inconsistent` (K -0.37 %, N 0.35 % off, se 0.25 %). The
 #: correction now costs 0.03-0.8x the soft filter it feeds (`fits/results/footprint_cost.md`) and
@@ -402,6 +421,7 @@ CHART_REFOCUS = 1e-3
 
 _NAMES = (
     "SPANS_MIN_RADIUS",
+    "SPANS_MIN_RADIUS_JACOBIAN",
     "JITTER_SPANS_MIN_RADIUS",
     "SUPERSAMPLE_SPANS_MIN_RADIUS",
     "COMPARE_ALL_MAX",

@@ -11,7 +11,13 @@ from jax.test_util import check_grads
 
 import jaxdof
 from jaxdof._filters.soft import soft_filter
-from jaxdof._filters.spans import TAPS, exact_soft_filter, spans_filter
+from jaxdof._filters.spans import (
+    TAPS,
+    crossover_for,
+    exact_soft_filter,
+    in_jacobian,
+    spans_filter,
+)
 from jaxdof.internal import tuning
 
 from .helpers import scatter_reference, step_scene
@@ -267,3 +273,50 @@ def test_forced_paths_and_bad_path():
     )
     with pytest.raises(ValueError, match="path="):
         exact_soft_filter(image, radius, max_radius=2.0, path="fast")
+
+
+def test_dispatch_inside_a_jacobian():
+    """Traced `in_jacobian` (a fit's residual Jacobian), the soft filter takes spans from
+    `SPANS_MIN_RADIUS_JACOBIAN` for the image's channels on; outside, the forward crossover."""
+    rng = np.random.default_rng(16)
+    radius = rng.uniform(0, 3, (10, 10))
+    table = tuning.SPANS_MIN_RADIUS_JACOBIAN
+    for channels in (1, 3):
+        image = rng.uniform(size=(10, 10, channels))
+        at = crossover_for(channels, table)
+        f = lambda i, r, w: exact_soft_filter(i, r, max_radius=w)  # noqa: E731
+        for window in (at - 1, at):
+            with in_jacobian():
+                inside = _takes_spans(functools.partial(f, w=window), image, radius)
+            outside = _takes_spans(functools.partial(f, w=window), image, radius)
+            assert inside == (window >= at)
+            assert outside == (window >= SPANS_MIN_RADIUS)
+    assert crossover_for(1, table) < SPANS_MIN_RADIUS  # spans win there far earlier
+
+
+def test_fit_residual_jacobian_takes_spans_and_matches_dense():
+    """The fit's residual (`_fit.residual._Model`, its Jacobian-building JVP rule) on a grey
+    photo with a window past the Jacobian's crossover: its Jacobian comes from the spans path and
+    equals the dense gather's to rounding (float64)."""
+    from jaxdof._fit.layout import _Spec
+    from jaxdof._fit.residual import _Model
+
+    window = float(crossover_for(1, tuning.SPANS_MIN_RADIUS_JACOBIAN))
+    assert window < SPANS_MIN_RADIUS
+    image = jnp.asarray(step_scene(40, 40)[0][..., :1])
+    depth = jnp.asarray(np.linspace(1.0, 10.0, 40)[None, :].repeat(40, 0))
+    base = np.array([[0.05, 2.0, 1.5, 4e-5]])  # circles up to ~9 px
+    spec = _Spec(("focus_distance", "f_number"), (), 1)
+    layout = spec.layout(base, np.asarray(depth))
+    targets = jnp.zeros((1, *image.shape), jnp.float64)
+    args = (image, depth, targets, jnp.ones_like(targets), layout)
+    model = _Model(1, window, (), jaxdof.DefocusModel(checks=False), len(spec.used))
+    y = jnp.asarray(model.pack(base, layout))
+    jac = jax.jit(jax.jacfwd(model))
+    assert "cumsum" in str(jax.make_jaxpr(jax.jacfwd(model))(y, args))
+    with tuning.override(SPANS_MIN_RADIUS_JACOBIAN={math.inf: math.inf}):
+        dense_jac = jax.jit(jax.jacfwd(model))(y, args)
+        assert "cumsum" not in str(jax.make_jaxpr(jax.jacfwd(model))(y, args))
+    out = jac(y, args)
+    assert np.max(np.abs(out)) > 0
+    np.testing.assert_allclose(out, dense_jac, rtol=0, atol=1e-12 * float(np.max(np.abs(out))))

@@ -64,9 +64,11 @@ R = 40 against the float32 accuracy goal, 2e-5 of the image's range.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import NamedTuple
 
 import jax
@@ -102,15 +104,39 @@ def crossover_for(samples: int, table: dict[int | float, float]) -> float:
     return next(r for n, r in table.items() if samples <= n)
 
 
+# Set while a Jacobian of renders is traced (`in_jacobian`).
+_IN_JACOBIAN: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "jaxdof_in_jacobian", default=False
+)
+
+
+@contextlib.contextmanager
+def in_jacobian() -> Iterator[None]:
+    """Trace the soft filters inside the block as parts of a Jacobian (a few forward-mode tangents
+    sharing one primal, as `fit_lens`'s residual builds it): `exact_soft_filter` then takes the
+    crossover measured there, `SPANS_MIN_RADIUS_JACOBIAN` by the number of channels, where the
+    dense gather's tangents (every tap's area derivative) cost far more than the spans' (only the
+    boundary taps move with the radius)."""
+    token = _IN_JACOBIAN.set(True)
+    try:
+        yield
+    finally:
+        _IN_JACOBIAN.reset(token)
+
+
 def exact_soft_filter(
     image: ChannelsLast, radius: Radius, *, max_radius: float, path: str = "auto"
 ) -> ChannelsLast:
     """The exact soft scatter by the dense gather or by row spans, whichever is faster.
 
-    `path="auto"` picks spans when `max_radius >= SPANS_MIN_RADIUS`; `"dense"` and `"spans"` force
-    one (the tests and benchmarks compare them). Both give the same numbers up to rounding.
+    `path="auto"` picks spans when `max_radius >= SPANS_MIN_RADIUS` (traced `in_jacobian`:
+    `SPANS_MIN_RADIUS_JACOBIAN` for the image's channels); `"dense"` and `"spans"` force one
+    (the tests and benchmarks compare them). Both give the same numbers up to rounding.
     """
-    if use_spans(path, max_radius, _tuning.SPANS_MIN_RADIUS):
+    crossover = _tuning.SPANS_MIN_RADIUS
+    if _IN_JACOBIAN.get():
+        crossover = crossover_for(image.shape[-1], _tuning.SPANS_MIN_RADIUS_JACOBIAN)
+    if use_spans(path, max_radius, crossover):
         return spans_filter(image, radius, max_radius=max_radius)
     return soft_filter(image, radius, max_radius=max_radius)
 

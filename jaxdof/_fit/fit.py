@@ -17,7 +17,7 @@ import equinox as eqx
 import jax
 import numpy as np
 import optimistix as optx
-import scipy.stats
+import scipy.special
 from jaxtyping import ArrayLike
 
 from .. import _tuning
@@ -277,16 +277,22 @@ def _choose_luma(image, targets, luma: bool | None) -> tuple[bool, dict]:
     return on, {"fitted": on, "forced": False, "chroma_detail": detail}
 
 
-def _fit_treated(
-    image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
-    allow_degenerate, nuisances: tuple[str, ...], luma: bool, starts, verbose, model, method,
-    footprint, pyramid, downsample, border, tiles, edge_weight, test: tuple[str, ...] = (),
-    registration_reach=None, hole_reach=None,
-) -> FitResult:  # fmt: skip
+def _fit_treated(**call) -> FitResult:
     """`fit_lens` with the scene's treatment (or the caller's): one fit, no selection; the score
-    tests of the nuisances `test` (`photo.NUISANCES`) where it does not fit them."""
-    given = dict(locals())  # the call, to refit on tiles chosen for a larger window
-    run, treatment, rows0, window, budget, levels = _set_up(**given)
+    tests of the nuisances `call["test"]` (`photo.NUISANCES`) where it does not fit them. Fitted
+    again where the fit finds it needs more room (`_fit_once`)."""
+    while True:
+        out = _fit_once(call)
+        if isinstance(out, FitResult):
+            return out
+        call = {**call, **out}
+
+
+def _fit_once(call: dict) -> FitResult | dict:
+    """One fit of `call` (`fit_lens`'s, as `_set_up` takes it), or the changes to fit again
+    with: a fitted registration that reads beyond the band allowed for it, or tiles whose halos
+    no longer hold the fitted window (chosen again for it)."""
+    run, treatment, rows0, window, budget, levels = _set_up(**call)
     p, full_pixels = run.problem, int(run.problem.photo[0] * run.problem.photo[1])
     chosen = None
     try:
@@ -297,7 +303,7 @@ def _fit_treated(
             window,
             budget,
             levels,
-            own_choice=model is None and method is None,
+            own_choice=call["model"] is None and call["method"] is None,
         )
         p = run.problem
         model_r, solution, info, r_final, window, notes, args, used = full_resolution(
@@ -307,8 +313,9 @@ def _fit_treated(
         info.update(jax.device_get(stats))
         # The score tests of the nuisances to decide, where the fit leaves something to explain
         # (`select.with_nuisances`); on tiles only those that do not depend on the whole frame.
+        test = call.get("test", ())
         names = tuple(k for k in test if k not in p.spec.nuisances and not (chosen and k in FRAMED))
-        if names and float(info["sigma"]) >= nuisance_floor(targets):
+        if names and float(info["sigma"]) >= nuisance_floor(call["targets"]):
             scores = run_stage(
                 "nuisance scores", nuisance_scores, model_r, solution, args, p.spec, names
             )
@@ -325,11 +332,11 @@ def _fit_treated(
     if "registration" in p.spec.nuisances:
         needed = _registration_reach(p.photo, info["nuisance_values"])
         if needed > run.extra_band:  # the fitted registration reads beyond the band: again
-            return _fit_treated(**{**given, "registration_reach": needed})
+            return {"registration_reach": needed}
     if chosen is not None:
         if window > chosen.halo:  # the halos no longer hold the window's reach: choose again
-            again = tiles if run.boxes is not None else budget  # (given tiles where they fit)
-            return _fit_treated(**{**given, "max_radius": window, "tiles": again})
+            again = call["tiles"] if run.boxes is not None else budget  # (given ones if they fit)
+            return {"max_radius": window, "tiles": again}
         notes.append(tiles_note(chosen, full_pixels))
         result = dataclasses.replace(result, tiles=chosen.boxes)
     # A rank-deficient solution that the photos contradict (the adequacy test fails there) while
@@ -338,17 +345,17 @@ def _fit_treated(
     # infinity is rank deficient only at its solution, which explains the photos).
     if (
         code_of(info["status"]) == code_of(RESULTS.degenerate)
-        and not allow_degenerate
+        and not call["allow_degenerate"]
         and not bool(result.adequacy["adequate"])
     ):
         info["determined_at_init"] = _determined_at_init(model_r, rows0, args, p)
-    return verdict(run, result, info, r_final, window, notes, allow_degenerate)
+    return verdict(run, result, info, r_final, window, notes, call["allow_degenerate"])
 
 
 def _set_up(
     image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
     nuisances, luma, starts, verbose, model, method, footprint, pyramid, downsample, border,
-    tiles, edge_weight, registration_reach, hole_reach, **_,
+    tiles, edge_weight, registration_reach=None, hole_reach=None, **_,
 ):  # fmt: skip
     """`_fit_treated`'s checked problem and plan: `(run, treatment, rows0, window, budget,
     levels)`, the starts `rows0`, the window, the tiles' pixel budget (`None`: the whole frame)
@@ -448,7 +455,9 @@ def _nuisance_entries(info, spec, photo, reach: int) -> dict:
             "fitted": fitted,
             "score": score,
             "dof": dof,
-            "p_value": float(scipy.stats.chi2.sf(score, dof)) if math.isfinite(score) else math.nan,
+            "p_value": float(scipy.special.chdtrc(dof, score))
+            if math.isfinite(score)
+            else math.nan,
         }
         if fitted:
             entry["values"] = {

@@ -25,12 +25,12 @@ from .residual import _Model
 from .solve import default_solver, fit_starts, restate, run_stage, stage_note
 from .strategies import (
     _COARSE_TOL,
-    _downsample,
     _next_starts,
     apply_border,
     distinct,
     level_band,
     reduced_window,
+    reductions,
     window_for,
 )
 from .tiles import (
@@ -41,7 +41,6 @@ from .tiles import (
     jacobian_information,
     pixel_information,
     scout_factor,
-    scout_problem,
     tiled_problem,
 )
 from .verbose import _with_verbose
@@ -118,45 +117,53 @@ def solvers(solver, dtype, verbose):
     return solver, coarse_solver
 
 
-def _coarse_to_fine(run: Run, rows0: np.ndarray, window: float):
-    """The starts of the full-resolution solve: the parameter vectors `(S, P)` and their lens rows
-    `(S, T, 4)`.
+def _level(run: Run, data, k: int, y0s, rows: np.ndarray, max_steps: int | None = None):
+    """One coarse level of the starts' solve: the starts `y0s` (lens rows `rows`) solved with the
+    coarse solver on `data` (`(image, depth, targets, sqrt_w, base)`, the problem box-averaged
+    `2^k` times), in the user's window scaled to it or the reach of the starts' circles there.
+    The layout keeps the full-resolution bound on f, so that a parameter vector means the same
+    lens on every level. Returns the solution, its `info`, the level's layout and the next
+    starts (`_next_starts`: their vectors and lens rows at the full-resolution pitch)."""
+    p = run.problem
+    im, dep, tg, sw, b = data
+    layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
+    if run.max_radius is not None:
+        window = run.max_radius / 2**k  # the same extent in the scene
+    else:
+        window = reduced_window(run.forward, rows, dep, tg.shape, 2**k)
+    # (A level whose band would leave no pixel keeps them all; only its starts matter.)
+    args = (im, dep, tg, sw, layout)
+    _, solution, info, _, _ = run.solve(window, y0s, args, k, run.coarse_solver, max_steps)
+    y0s, rows = _next_starts(info, p.b, y0s, p.spec, layout)
+    return solution, info, layout, y0s, rows
 
-    Coarse-to-fine: the multi-start solve runs on the coarsest level, and each finer level starts
-    from the level below's solution (and a near-tie alternative, if any); the last level is the
-    full-resolution problem with the full tolerance (`full_resolution`), so the answer and its
-    statistics are those of the full-resolution fit. With one level: the starts themselves.
-    """
+
+def _with_init(y0s, rows: np.ndarray, y0_init, rows0: np.ndarray):
+    """The starts with the raw init appended, to be refined at full resolution too: a coarse
+    level's model error can move every start into a wrong basin with the lowest coarse loss
+    (seen on a depth-steps scene with a fine texture: all four starts went to N = 17,
+    d_f = 0.42 at 48 x 48, while the init converges to the truth at 96 x 96 with a quarter of
+    that loss), and the full-resolution loss, not the coarse one, decides between them."""
+    return np.concatenate([y0s, y0_init[:1]]), np.concatenate([rows, rows0[:1]])
+
+
+def _coarse_to_fine(run: Run, rows0: np.ndarray):
+    """The starts of the full-resolution solve on the whole frame: the parameter vectors `(S, P)`
+    and their lens rows `(S, T, 4)`.
+
+    The multi-start solve runs on the coarsest level, and each finer level starts from the level
+    below's solution (and a near-tie alternative, if any); the last level is the full-resolution
+    problem with the full tolerance (`full_resolution`), so the answer and its statistics are
+    those of the full-resolution fit. With one level: the starts themselves."""
     p = run.problem
     y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.nuisances)
     if run.levels == 1:
         return y0_init, rows0
-    pyr = [(p.image, p.depth, p.targets, p.sqrt_w, p.b)]
-    for _ in range(run.levels - 1):
-        pyr.append(_downsample(*pyr[-1], p.ratio))
-    y0s, rows = y0_init, rows0  # rows: the current starts' lenses, at the full-resolution pitch
-    for lev in range(run.levels - 1, 0, -1):
-        im_l, dep_l, tg_l, sw_l, b_l = pyr[lev]
-        # Shapes and values stay numpy; the layout keeps the full-resolution bound on f at every
-        # level, so that a parameter vector means the same lens on every level.
-        layout_l = dataclasses.replace(p.layout, base=b_l.astype(p.dtype))
-        scale = 2.0**lev
-        if run.max_radius is not None:
-            win_l = window / scale  # the same extent in the scene as the full-resolution window
-        else:
-            win_l = reduced_window(run.forward, rows, dep_l, tg_l.shape, scale)
-        args_l = (im_l, dep_l, tg_l, sw_l, layout_l)
-        # (A coarse level whose band would leave no pixel keeps them all; only its starts matter.)
-        _, _, info_l, _, _ = run.solve(win_l, y0s, args_l, lev, run.coarse_solver)
-        y0s, rows = _next_starts(info_l, p.b, y0s, p.spec, layout_l)  # at full-resolution pitch
-    # The init is refined at full resolution too: a coarse level's model error can move every
-    # start into a wrong basin with the lowest coarse loss (seen on a depth-steps scene with a
-    # fine texture: all four starts went to N = 17, d_f = 0.42 at 48 x 48, while the init
-    # converges to the truth at 96 x 96 with a quarter of that loss), and the full-resolution
-    # loss, not the coarse one, decides between them.
-    y0s = np.concatenate([y0s, y0_init[:1]], axis=0)
-    rows = np.concatenate([rows, rows0[:1]], axis=0)
-    return y0s, rows
+    pyramid = reductions(p, range(1, run.levels))
+    y0s, rows = y0_init, rows0
+    for k in range(run.levels - 1, 0, -1):
+        _, _, _, y0s, rows = _level(run, pyramid[k], k, y0s, rows)
+    return _with_init(y0s, rows, y0_init, rows0)
 
 
 # When the border band leaves less than this share of the pixels, the starts first search for
@@ -326,30 +333,20 @@ def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: i
         assert chosen is not None  # `fits_tiles` said there is room
         run = dataclasses.replace(run, problem=tiled_problem(p, chosen), border=0, levels=1)
         return run, y0_init, rows0, chosen
-    (im, dep, tg, sw, b), _ = scout_problem(p, q)
-    layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
-    if run.max_radius is not None:
-        win = run.max_radius / q  # the same extent in the scene
-    else:
-        win = reduced_window(forward, rows0, dep, tg.shape, q)
+    k = q.bit_length() - 1
+    scout = reductions(p, [k])[k]
     run = dataclasses.replace(run, levels=2)
-    level = q.bit_length() - 1
     # The scout only finds the basin: a start still crawling after `_SCOUT_MAX_STEPS` (towards
     # f/300 and a focus at 0.1 m on the 1.5 MP study, 97 lockstep steps) is far behind the best.
-    _, solution, info, _, _ = run.solve(
-        win, y0_init, (im, dep, tg, sw, layout), level, run.coarse_solver, _SCOUT_MAX_STEPS
-    )
-    y0s, rows = _next_starts(info, p.b, y0_init, p.spec, layout)  # at full-resolution pitch
+    solution, info, layout, y0s, rows = _level(run, scout, k, y0_init, rows0, _SCOUT_MAX_STEPS)
     if _init_elsewhere(info, p, layout):
-        # The init is refined at full resolution too (as in `_coarse_to_fine`).
-        y0s = np.concatenate([y0s, y0_init[:1]], axis=0)
-        rows = np.concatenate([rows, rows0[:1]], axis=0)
+        y0s, rows = _with_init(y0s, rows, y0_init, rows0)
         run = dataclasses.replace(run, init_last=True)
     fine = window if run.max_radius is not None else _fine_window(run, rows)
     jac = solution[5]
 
     def information():
-        return jacobian_information(jax.device_get(jac), tg.shape, p.spec.used), q
+        return jacobian_information(jax.device_get(jac), scout[2].shape, p.spec.used), q
 
     # (The init's window had room for tiles; a larger fine window may not: then its halos.)
     chosen = choose(fine, information) or choose(window, information)
@@ -434,7 +431,7 @@ def coarse_solve(run: Run, treatment, rows0, window: float, budget, levels, own_
     fit chose itself (`own_choice`) is kept only where a tile holds a depth edge."""
     p = run.problem
     if budget is None:  # `run.levels` set (`_set_up`)
-        y0s, rows = _coarse_to_fine(run, rows0, window)
+        y0s, rows = _coarse_to_fine(run, rows0)
         return run, treatment, y0s, rows, None
     occluding = run.forward
     chosen_here = treatment.occlusion and own_choice

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
 from jaxtyping import Array, Float
 
+from .._filters.spans import in_jacobian
 from .._lens import ThinLens
 from . import layout as coords
 from .forward import AbstractForwardModel
@@ -144,7 +145,8 @@ def _residuals_jvp(static: _Model, primals, tangents):
         r = model.residuals(y, args)
         out = jnp.zeros_like(r)
     else:
-        r, jac = jax.vmap(column, out_axes=(None, 1))(basis)
+        with in_jacobian():  # the soft filter's crossover for Jacobians
+            r, jac = jax.vmap(column, out_axes=(None, 1))(basis)
         out = jac @ y_dot[live]
     # Derivatives with respect to the data (e.g. implicit differentiation of a fit with respect to
     # the image) or the model's arrays are rare: a plain JVP through the render, only for the

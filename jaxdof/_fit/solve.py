@@ -300,6 +300,7 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
         ys=ys,
         steps=num_steps,
         stopped=stopped,
+        tie=tie_margin(loss[best], n, p, floor),  # the loss another start ties within
     )
     return solution, info
 

@@ -214,6 +214,20 @@ def _downsample(image, depth, targets, sqrt_w, base, s: int = 1):
     )
 
 
+def reductions(p, ks) -> dict[int, tuple]:
+    """The arrays of problem `p` (`prepare.Problem`) box-averaged `2^k` times (`_downsample`, `k`
+    times), for each `k` of `ks`: `{k: (image, depth, targets, sqrt_w, base)}`; the levels
+    between are not kept."""
+    ks = set(ks)
+    level = (p.image, p.depth, p.targets, p.sqrt_w, p.b)
+    out = {0: level} if 0 in ks else {}
+    for k in range(1, max(ks, default=0) + 1):
+        level = _downsample(*level, p.ratio)
+        if k in ks:
+            out[k] = level
+    return out
+
+
 def _rows(theta: np.ndarray, base: np.ndarray) -> np.ndarray:
     """Lens rows `(f, N, d_f, pitch)` `(T, 4)` from a solution's slot values `theta`
     (`layout.theta`: the focus as its power `1 / d_f`, 0 at infinity) and the pitch of `base`."""

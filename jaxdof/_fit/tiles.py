@@ -66,7 +66,7 @@ from .photo import frame
 from .prepare import Problem
 from .residual import _Model
 from .solve import restate, run_stage
-from .strategies import _downsample, auto_levels, reduced_window
+from .strategies import auto_levels, reduced_window, reductions
 
 
 #: Photos with more pixels than this are fitted on tiles by default (`tiles="auto"`).
@@ -206,17 +206,6 @@ def estimate_fit_memory(
     return int(table["fixed"] + table["frame"] * n + table["fitted"] * m * int(targets))
 
 
-def scout_problem(p: Problem, q: int | None = None):
-    """The problem box-averaged by `q` (a power of two; default: until the longer side is at most
-    `SCOUT_SIDE` px): its arrays and the factor `q`."""
-    level = (p.image, p.depth, p.targets, p.sqrt_w, p.b)
-    k = 1
-    while (k < q) if q is not None else (max(level[2].shape[1:3]) > SCOUT_SIDE):
-        level = _downsample(*level, p.ratio)
-        k *= 2
-    return level, k
-
-
 def scout_factor(photo: tuple[int, int], r_starts: float, levels: int | None) -> int:
     """The reduction `q` (a power of two) of the scout on which a fit on tiles solves its starts:
     `2^(L-1)` for `levels = L` (the `pyramid` option); else the least that brings the longer side
@@ -248,9 +237,13 @@ def jacobian_information(jac, shape: tuple[int, ...], used) -> np.ndarray:
 
 def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarray, int]:
     """`(h, w, P, P)`: each reduced pixel's Fisher information about the free parameters (in the
-    solver's coordinates, unit noise) at the first lens of `rows0`, on `scout_problem(p)`, and
+    solver's coordinates, unit noise) at the first lens of `rows0`, on the photo box-averaged
+    until its longer side is at most `SCOUT_SIDE` px, and
     the reduction factor (tiles chosen at the init: `path._on_tiles` without a scout solve)."""
-    (im, dep, tg, sw, b), q = scout_problem(p)
+    k = 0  # box-averaged until the longer side is at most `SCOUT_SIDE` px
+    while max(p.targets.shape[1:3]) // 2**k > SCOUT_SIDE:
+        k += 1
+    (im, dep, tg, sw, b), q = reductions(p, [k])[k], 2**k
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
     window = reduced_window(forward, rows0[:1], dep, tg.shape, q)
     spec = p.spec

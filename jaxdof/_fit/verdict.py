@@ -49,9 +49,9 @@ def _fields_text(names, theta) -> str:
 
 
 def _ambiguity(info, p: Problem) -> str | None:
-    """The near/far ambiguity: another converged start at a distinct lens, with a loss the noise
-    cannot tell from the best one (within ~2 sigma^2 per parameter, or rounding when noise-free).
-    Returns the note naming it, or None."""
+    """The near/far ambiguity: another converged start at a distinct lens (beyond 10 standard
+    errors), with a loss the noise cannot tell from the best one's (`race.tie_margin`, the rule
+    that picks the best). Returns the note naming it, or None."""
     loss, converged, best = info["loss"], info["converged"], int(info["best"])
     if len(loss) < 2:
         return None
@@ -59,16 +59,11 @@ def _ambiguity(info, p: Problem) -> str | None:
     used = list(spec.used)
     theta = np.asarray(info["theta"], np.float64)[:, used]
     floor = np.asarray(theta_floor(p.layout, spec.nuisances), np.float64)[used]
-    sigma2 = float(info["sigma"]) ** 2
-    n_p = len(used)
-    floor_loss = float(jnp.finfo(p.dtype).eps) * float(
-        np.sum(np.asarray(p.targets, np.float64) ** 2)
-    )
     se = np.sqrt(np.maximum(np.asarray(info["variance"], np.float64), 0))
     for i in np.argsort(loss):
         if i == best or not converged[i]:
             continue
-        tie = loss[i] - loss[best] <= 2.0 * sigma2 * n_p + 10 * floor_loss
+        tie = loss[i] - loss[best] <= float(info["tie"])
         if tie and distinct(theta[i], theta[best], floor, slack=10 * se):
             alt = _fields_text(spec.names, theta[i])
             return (
