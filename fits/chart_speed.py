@@ -140,6 +140,7 @@ def main(argv=None) -> None:
     ap.add_argument("--sizes", nargs="+", default=["1.5", "24"], choices=list(SIZES))
     ap.add_argument("--repeats", type=int, default=1)
     ap.add_argument("--render-only", action="store_true", help="only make the missing photos")
+    ap.add_argument("--tag", default="", help="suffix of the report's name, e.g. _s32")
     args = ap.parse_args(argv)
     if args.render_only:
         for label in args.sizes:
@@ -196,7 +197,7 @@ def main(argv=None) -> None:
         "compiled solves, the statistics, ...); the rest is reading the files, finding the "
         "chart, building its scene and the host's choices.",
     ]
-    path = write_markdown(result_path("chart_speed"), lines)
+    path = write_markdown(result_path("chart_speed", tag=args.tag), lines)
     print("\n".join(lines))
     print(f"wrote {path}", file=sys.stderr)
 

@@ -30,7 +30,7 @@ import statistics
 import sys
 import time
 
-from _common import command, machine_info, result_path, write_markdown
+from _common import command, git_state, machine_info, result_path, write_markdown
 
 
 def mosaic_shape(window: int, tiles: int = 25) -> tuple[int, int]:
@@ -134,6 +134,7 @@ def main(argv=None) -> None:
         "question and the method).",
         "",
         *[f"- {k}: {v}" for k, v in info.items()],
+        f"- jaxdof source: {git_state()}",
         "",
         "Medians of wall time over "
         f"{args.repeats} rounds in turns; `ratio`: spans / dense (under 1: spans faster).",

@@ -81,15 +81,18 @@ SPANS_MIN_RADIUS = 40.0
 #: carry every channel, while the dense gather's weights serve all channels at once.
 #:
 #: Measured 2026-12-06 (`python fits/fit_spans.py`, report `fits/results/fit_spans.md`; 2-core
-#: AMD EPYC shared with other jobs; jax 0.10.2; float32): `jax.jacfwd` of `jaxdof.render(...,
-#: method="soft")` with respect to (N, d_f) on a mosaic of 25 tiles with halos of the window,
-#: circles from 0 to (W - 1) / 1.5 px, medians of 5 rounds in turns. Spans / dense time:
+#: AMD EPYC shared with other jobs; jax 0.10.2, git da520f6; float32): `jax.jacfwd` of
+#: `jaxdof.render(..., method="soft")` with respect to (N, d_f) on a mosaic of 25 tiles with halos
+#: of the window, circles from 0 to (W - 1) / 1.5 px, medians of 5 rounds in turns. Spans / dense
+#: time, two runs (a: the report; b: an earlier run of the same study):
 #:
-#:     W      8     12    16    20    24    32    40    48
-#:     C=1  1.29  1.01  0.90  0.61  0.61  0.40  0.35  0.28
-#:     C=3  3.95  3.00  2.62  1.65  1.31  1.05   -    0.64
+#:     W        8     12    16    20    24    32    40    48
+#:     C=1 a  1.11  1.21  0.70  0.86  0.54  0.40  0.37  0.28
+#:     C=1 b  1.29  1.01  0.90  0.61  0.61  0.40  0.35  0.28
+#:     C=3 a  2.43  2.00  2.15  1.82  1.51  1.05  0.81  0.55
+#:     C=3 b  3.95  3.00  2.62  1.65  1.31  1.05   -    0.64
 #:
-#: The forward render alone is within 0.83-1.33x between the paths at every one of these windows.
+#: The forward render alone is within 0.82-1.33x between the paths at every one of these windows.
 SPANS_MIN_RADIUS_JACOBIAN: dict[int | float, float] = {1: 16.0, math.inf: 40.0}
 
 #: `method="jitter"` takes row spans from this window radius on, by the number of points `n`

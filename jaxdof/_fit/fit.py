@@ -53,7 +53,7 @@ from .select import (
     with_nuisances,
 )
 from .solve import degenerate_at, finish, nuisance_scores, run_stage
-from .strategies import _check_pyramid, auto_levels, check_border, start_lenses, window_for
+from .strategies import _check_pyramid, auto_levels, check_border, start_lenses, window_of
 from .tiles import fits_tiles, given_tiles, tile_boxes, use_tiles
 from .treatment import check_edge_weight, treat_scene
 from .verdict import failed, tiles_note, verdict
@@ -376,14 +376,12 @@ def _set_up(
     levels = _check_pyramid(pyramid, p.photo)
     solver, coarse_solver = solvers(solver, p.dtype, verbose)
     rows0 = start_lenses(p.b, p.d, free=free, starts=n_starts, fcap=p.fcap)
-    if max_radius is None:
-        window = window_for(forward.max_circle(rows0, p.d), float(max(p.photo)))
-    else:
-        window = float(max_radius)
+    fixed = None if max_radius is None else float(max_radius)
+    window = window_of(forward, rows0, p.d, p.photo, fixed=fixed)
     # The photo pixels that a depth hole's light reaches: the init lens's circles and the
     # border's stencils (the border band of their window; the starts' window can be far
     # larger: starts spread in diopters make large circles).
-    own = window_for(forward.max_circle(rows0[:1], p.d), float(max(p.photo)))
+    own = window_of(forward, rows0[:1], p.d, p.photo)
     if hole_reach is None:
         hole_reach = float(forward.border_band(min(own, window)))
     p, hole_pixels, hole_reach = leave_out_holes(p, hole_reach)
@@ -401,10 +399,7 @@ def _set_up(
         # coarse levels would only add work: measured 0.5-0.7x the full-resolution fit's speed
         # (fits/recover.py).
         levels = 1
-    user_window = None if max_radius is None else window
-    run = Run(
-        p, forward, solver, coarse_solver, verbose, max_steps, user_window, 1, band, boxes=boxes
-    )
+    run = Run(p, forward, solver, coarse_solver, verbose, max_steps, fixed, 1, band, boxes=boxes)
     if "registration" in p.spec.nuisances and budget is not None:
         raise ValueError(
             "registration is fitted on the whole frame (it resamples the photo, reading pixels "

@@ -28,10 +28,11 @@ from .strategies import (
     _next_starts,
     apply_border,
     distinct,
+    grown_window,
     level_band,
-    reduced_window,
     reductions,
-    window_for,
+    shrunk_window,
+    window_of,
 )
 from .tiles import (
     Tiles,
@@ -127,10 +128,7 @@ def _level(run: Run, data, k: int, y0s, rows: np.ndarray, max_steps: int | None 
     p = run.problem
     im, dep, tg, sw, b = data
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
-    if run.max_radius is not None:
-        window = run.max_radius / 2**k  # the same extent in the scene
-    else:
-        window = reduced_window(run.forward, rows, dep, tg.shape, 2**k)
+    window = window_of(run.forward, rows, dep, tg.shape[1:3], 2**k, run.max_radius)
     # (A level whose band would leave no pixel keeps them all; only its starts matter.)
     args = (im, dep, tg, sw, layout)
     _, solution, info, _, _ = run.solve(window, y0s, args, k, run.coarse_solver, max_steps)
@@ -198,11 +196,9 @@ def _shrink_window(run: Run, window: float, r_final: float, info):
     set a 10 px window and band, and the lowest-loss start there was 20 % off in K, while the
     4 px window of the fitted circles keeps 37 % more pixels. Every start is solved again from
     where it ended, so the larger set of pixels decides between them."""
-    if run.max_radius is not None:
-        return None
     p = run.problem
-    smaller = window_for(r_final, float(max(p.photo)))
-    if smaller >= window:
+    smaller = shrunk_window(window, r_final, p.photo, run.max_radius)
+    if smaller is None:
         return None
     ys = np.where(np.isfinite(info["ys"]), info["ys"], 0).astype(np.asarray(info["ys"]).dtype)
     model, solution, info2, args, bands = run.solve(smaller, ys, p.args, 0, run.solver)
@@ -220,20 +216,20 @@ def full_resolution(run: Run, y0s, rows: np.ndarray, window: float):
     chosen solution (for `finish`), its `info`, the largest fitted circle (px), the final window
     (px), the notes, the `args` solved (weights with the band applied) and the band (px)."""
     p = run.problem
-    cap = float(max(p.photo))
-    if run.levels > 1 and run.max_radius is None:
+    if run.levels > 1:
         window = _fine_window(run, rows)
     notes = []
     y0s = _search_on_every_pixel(run, window, y0s)
     model, solution, info, args, (band, wanted) = run.solve(window, y0s, p.args, 0, run.solver)
     r_final = run.forward.max_circle(np.asarray(info["natural"], np.float64), p.d)
     for _ in range(2):
-        if r_final <= window or run.max_radius is not None:
+        bigger = grown_window(window, r_final, p.photo, run.max_radius)
+        if bigger is None:
             break
         notes.append(
             f"the window {window:g} px was too small for the fitted circles ({r_final:.3g} px); refitted"
         )
-        window = window_for(r_final, max(cap, 1.5 * r_final + 1.0))
+        window = bigger
         best = int(info["best"])
         y0s = np.concatenate([info["ys"][best][None], info["ys"]], axis=0)
         model, solution, info, args, (band, wanted) = run.solve(window, y0s, p.args, 0, run.solver)
@@ -275,7 +271,7 @@ def _fine_window(run: Run, rows: np.ndarray, depth: np.ndarray | None = None) ->
     p = run.problem
     starts = rows[:-1] if run.init_last else rows
     depth = p.d if depth is None else depth
-    return window_for(run.forward.max_circle(starts, depth), float(max(p.photo)))
+    return window_of(run.forward, starts, depth, p.photo, fixed=run.max_radius)
 
 
 # A start whose scout solution lies within this share of the best one's fields (relative) is in
@@ -342,7 +338,7 @@ def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: i
     if _init_elsewhere(info, p, layout):
         y0s, rows = _with_init(y0s, rows, y0_init, rows0)
         run = dataclasses.replace(run, init_last=True)
-    fine = window if run.max_radius is not None else _fine_window(run, rows)
+    fine = _fine_window(run, rows)
     jac = solution[5]
 
     def information():

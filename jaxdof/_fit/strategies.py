@@ -83,14 +83,35 @@ def window_for(radius: float, cap: float) -> float:
     return float(min(w, max(cap, 2.0)))
 
 
-def reduced_window(forward, rows: np.ndarray, depth, targets_shape, scale: float | int) -> float:
-    """The window (`window_for`) of a problem reduced `scale` times (a pyramid level, a scout):
-    the reach of the lens `rows`' circles over its `depth`, the pitch `scale` times coarser, at
-    most its targets' longer side (`targets_shape` `(T, h, w, ...)`)."""
+def window_of(
+    forward, rows: np.ndarray, depth, photo, scale: int = 1, fixed: float | None = None
+) -> float:
+    """`fit_lens`'s window (pixels) for the lenses `rows` on a problem reduced `scale` times (a
+    pyramid level, a scout) whose photo is `photo` `(H, W)`: the caller's `fixed` window (the
+    same extent in the scene), else the reach of the lenses' circles over `depth` with the pitch
+    `scale` times coarser (`window_for`)."""
+    if fixed is not None:
+        return fixed / scale
     rows = np.asarray(rows, np.float64).copy()
     rows[..., 3] = rows[..., 3] * scale
     r = forward.max_circle(rows, np.asarray(depth, np.float64))
-    return window_for(r, float(max(targets_shape[1:3])))
+    return window_for(r, float(max(photo[:2])))
+
+
+def grown_window(window: float, r: float, photo, fixed: float | None) -> float | None:
+    """The window a refit takes when the fitted circles (up to `r` px) outgrew `window` (allowed
+    past the photo's side, so that the circles fit), or None: they fit, or the window is the
+    caller's."""
+    if fixed is not None or r <= window:
+        return None
+    return window_for(r, max(float(max(photo[:2])), 1.5 * r + 1.0))
+
+
+def shrunk_window(window: float, r: float, photo, fixed: float | None) -> float | None:
+    """The smaller window that the fitted circles (up to `r` px) need, when it is smaller than
+    `window` (the starts' circles, spread in diopters, can set a far larger one), or None."""
+    smaller = window_for(r, float(max(photo[:2])))
+    return None if fixed is not None or smaller >= window else smaller
 
 
 # --------------------------------------------------------------------------------------------

@@ -66,7 +66,7 @@ from .photo import frame
 from .prepare import Problem
 from .residual import _Model
 from .solve import restate, run_stage
-from .strategies import auto_levels, reduced_window, reductions
+from .strategies import auto_levels, reductions, window_of
 
 
 #: Photos with more pixels than this are fitted on tiles by default (`tiles="auto"`).
@@ -245,7 +245,7 @@ def pixel_information(p: Problem, forward, rows0: np.ndarray) -> tuple[np.ndarra
         k += 1
     (im, dep, tg, sw, b), q = reductions(p, [k])[k], 2**k
     layout = dataclasses.replace(p.layout, base=b.astype(p.dtype))
-    window = reduced_window(forward, rows0[:1], dep, tg.shape, q)
+    window = window_of(forward, rows0[:1], dep, tg.shape[1:3], q)
     spec = p.spec
     model = _Model(spec.n_targets, window, spec.nuisances, forward, len(spec.used), spec.luma)
     y0 = pack(rows0[:1].astype(p.dtype), p.layout, spec.nuisances)[0]
