@@ -35,6 +35,8 @@ class Soft(AbstractMethod):
     the window's offsets, one weight per mirror class (`jaxdof/_filters/soft.py`); from there on the
     same sum by row spans of fully covered pixels plus the analytic boundary pixels, whose cost grows
     linearly in the radius (`jaxdof/_filters/spans.py`). Both give the same numbers to rounding.
+    Inside `fit_lens`'s Jacobian the spans start earlier for a one-channel image
+    (`SPANS_MIN_RADIUS_JACOBIAN`: their tangents move only the boundary taps).
 
     With `blades`, the disc is replaced by the regular polygon of `b = blades` sides inscribed in
     the circle of confusion, its vertices at angles `rotation + 2 pi j / b` (radians,

@@ -60,7 +60,7 @@ statistics -> the orchestration's choices):
 **For studies and the CLI**: `auto_levels` (the automatic pyramid rule), `max_circle` (the
 largest circle of lenses over a depth map), `start_lenses` (fit_lens's starts), `record_stages`
 (time the compiled stages of `fit_lens` calls without patching; these four are re-exported by
-`jaxdof.internal`), `window_for` (the window policy), `watch_stages` (tell a caller each stage
+`jaxdof.internal`), `window_for` (the window rule of `strategies.py`'s window policy), `watch_stages` (tell a caller each stage
 as it runs: the CLI's progress), `run_stage`, `fit_starts`, `restate` and `finish` (the stages).
 """
 
