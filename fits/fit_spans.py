@@ -18,7 +18,8 @@ over `--repeats` rounds; medians of wall time. The forward render alone is timed
 for reference. Both paths give the same numbers to rounding (checked here: their largest
 difference relative to the largest Jacobian entry is printed).
 
-Run: `python fits/fit_spans.py` (about 5 minutes on 2 cores); `--windows 24 32`, `--channels 1`,
+Run: `python fits/fit_spans.py` (five windows; the report's eight, `--windows 8 12 16 20 24 32 40
+48`, took 11 minutes on 2 cores); `--windows 24 32`, `--channels 1`,
 `--repeats 7`, `--tag _x`. Writes `fits/results/fit_spans<tag>.md`.
 """
 
