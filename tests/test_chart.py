@@ -10,7 +10,13 @@ import pytest
 from scipy import ndimage
 
 import jaxdof
-from jaxdof._chart._geometry import _footprint, camera_matrix, chart_pose, focal_from_homographies
+from jaxdof._chart._geometry import (
+    _footprint,
+    _halve,
+    camera_matrix,
+    chart_pose,
+    focal_from_homographies,
+)
 
 
 SHAPE = (240, 320)
@@ -246,6 +252,25 @@ def test_scene_is_the_footprint(chart, tilted):
     diff = np.abs(sharp[100:140] - ref)[on]
     # the raster's texels are 0.76 photo pixels here: mip level 0, 2 x 2 samples
     assert diff.mean() < 0.01 and diff.max() < 0.08
+
+
+def test_footprint_samples_as_map_coordinates(chart, tilted):
+    """`_footprint`'s bilinear samples are `scipy.ndimage.map_coordinates`' (order 1, mode
+    "nearest"), at a mip level and with the raster's edge in reach."""
+    c, raster = chart
+    pose, camera, _ = tilted
+    g_inv = np.linalg.inv(pose.homography(camera))
+    u, v, s = np.arange(SHAPE[1], dtype=float), np.arange(0, 240, 7, dtype=float), 3
+    level = _halve(raster)
+    got = _footprint(level, 1, g_inv, u, v, s, *c.pitch)
+    offsets = (np.arange(s) + 0.5) / s - 0.5
+    uu, vv = np.meshgrid((u[None] + offsets[:, None]).ravel(), (v[None] + offsets[:, None]).ravel())
+    q = g_inv @ np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)])
+    col, row = q[0] / q[2] / c.pitch[0] / 2 - 0.5, q[1] / q[2] / c.pitch[1] / 2 - 0.5
+    assert col.min() < 0 < level.shape[1] < col.max()  # beyond the raster on both sides
+    samples = ndimage.map_coordinates(level.astype(np.float64), [row, col], order=1, mode="nearest")
+    ref = samples.reshape(s, v.size, s, u.size).mean(axis=(0, 2))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
 
 
 def test_scene_minified(chart):

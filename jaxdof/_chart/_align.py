@@ -59,17 +59,16 @@ def align_view(
     Where the search does not improve the match, or moves a corner by more than 2 px (more than
     the detection's error: the template is off), `view` is returned.
     """
-    light = _linear(photo).astype(np.float64)
-    h, w = light.shape
+    h, w = np.shape(photo)[:2]
     ys, xs = np.nonzero(usable)
     if ys.size < 64:
         return view, 0.0
     every = max(1, math.ceil(ys.size / _SAMPLES))
     ys, xs = ys[::every], xs[::every]
+    target = _linear(np.asarray(photo)[ys, xs][None])[0].astype(np.float64)  # the samples' only
     coefs = ndimage.spline_filter(np.asarray(template, np.float64), order=3)
     u, v = (xs - w / 2) / w, (ys - h / 2) / w
     basis = np.stack([np.ones_like(u), u, v, u * u, u * v, v * v])
-    target = light[ys, xs]
     points = np.column_stack([xs, ys, np.ones(xs.size)])
     h0 = np.asarray(at, np.float64)
     chart, seen = view.outline_m, view.outline

@@ -19,8 +19,9 @@ from .._exif import ExifLens
 from .._fit import FitResult, fit_lens
 from .._fit.solve import stage_note
 from .._holes import near_holes
-from .._lens import ThinLens, coc_radius
+from .._lens import ThinLens
 from .._render import render
+from .._scene import start_circles
 from ._align import align_view, usable_pixels
 from ._design import Chart
 from ._detect import ChartView, detect_chart, mask_box
@@ -432,9 +433,14 @@ def _background_reach(depth, lenses: Sequence[ThinLens]) -> float:
     the depth is unknown, and a background behind the chart blurs at most as a point at
     infinity does, by the blur scale `K` (`ThinLens.blur_scale`, `r -> K` as `d -> inf`); the
     chart's own circles where they are larger (`r = K |1 - d_f / d|`, near the camera)."""
-    on = np.isfinite(depth)
-    near = float(np.min(depth[on]))
-    return max(max(float(lens.blur_scale), float(coc_radius(near, lens))) for lens in lenses)
+    near = float(np.nanmin(depth))
+    rows = [
+        [float(np.asarray(x)) for x in (n.focal_length, n.f_number, n.focus_distance)]
+        + [float(np.asarray(n.pixel_pitch))]
+        for n in lenses
+    ]
+    # on the host: a few scalars, not eager device calls
+    return float(start_circles(np.asarray(rows), np.array([near, np.inf])).max())
 
 
 def _fit_chart(sharp, depth, targets, init, fit_options: dict) -> FitResult:

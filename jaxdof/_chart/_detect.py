@@ -12,7 +12,7 @@ import numpy as np
 from jaxtyping import Float, Int
 from scipy import ndimage
 
-from .._io import linear_to_srgb, srgb_to_linear
+from .._io import srgb_to_linear
 from ._design import _QUIET, Chart, _cv2, raster_of
 from ._geometry import ChartError, _hom4
 
@@ -118,7 +118,13 @@ def grey8(photo: np.ndarray) -> np.ndarray:
     if photo.dtype.kind in "ui":
         top = 65535 if photo.max() > 255 else 255
         return np.round(photo.astype(np.float64) * (255 / top)).astype(np.uint8)
-    return np.round(linear_to_srgb(photo) * 255).astype(np.uint8)
+    # round(255 sRGB(x)) as the count of the codes' half-way points at or below x: exact, and
+    # several times faster than the power law over a 24 MP photo
+    return np.searchsorted(_SRGB8_HALFWAY, photo.astype(np.float64), side="right").astype(np.uint8)
+
+
+#: The linear light at which 8-bit sRGB codes `k - 1` and `k` meet (`k = 1 .. 255`).
+_SRGB8_HALFWAY = srgb_to_linear((np.arange(1, 256) - 0.5) / 255)
 
 
 def _detector(dictionary: str):

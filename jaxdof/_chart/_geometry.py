@@ -14,7 +14,6 @@ import math
 
 import numpy as np
 from jaxtyping import Float
-from scipy import ndimage
 
 from ._design import Chart
 
@@ -209,12 +208,12 @@ def chart_scene(
     sharp = np.full((h, w), mean, np.float32)
     depth = np.full((h, w), np.nan, np.float32)
     u = np.arange(w, dtype=np.float64)
+    # the plane's depth along each pixel's ray: z = plane / (n . K^-1 (u, v, 1)), linear in u, v
+    nk = normal @ k_inv
     for a in range(0, h, _BLOCK_ROWS):
         b = min(h, a + _BLOCK_ROWS)
         v = np.arange(a, b, dtype=np.float64)
-        # depth at the centres
-        ray = np.einsum("ij,jrc->irc", k_inv, _homogeneous(u, v))
-        z = plane / np.einsum("i,irc->rc", normal, ray)
+        z = plane / (nk[0] * u[None, :] + (nk[1] * v + nk[2])[:, None])
         # the pixels' corners on the chart (raster pixels)
         cx, cy, front = _to_chart(g_inv, np.append(u, w) - 0.5, np.append(v, b) - 0.5)
         cx, cy = cx / px, cy / py
@@ -234,27 +233,25 @@ def chart_scene(
         samples = int(min(_MAX_SAMPLES, max(1, math.ceil(float(s_max.max()) / 2**level))))
         while len(levels) <= level:
             levels.append(_halve(levels[-1]))
-        sharp[a:b] = np.where(
-            on, _footprint(levels[level], level, g_inv, u, v, samples, px, py), mean
-        )
+        cols = np.flatnonzero(on.any(axis=0))  # sampled where the chart is
+        lo, hi = int(cols[0]), int(cols[-1]) + 1
+        inner = _footprint(levels[level], level, g_inv, u[lo:hi], v, samples, px, py)
+        sharp[a:b, lo:hi] = np.where(on[:, lo:hi], inner, mean)
     return sharp, depth
 
 
-def _homogeneous(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    uu, vv = np.meshgrid(u, v)
-    return np.stack([uu, vv, np.ones_like(uu)])
-
-
 def _to_chart(g_inv: np.ndarray, u: np.ndarray, v: np.ndarray):
-    """The photo points of the grid `u` x `v` on the chart (m), and whether the plane is in front
-    of the camera there."""
-    p = np.einsum("ij,jrc->irc", g_inv, _homogeneous(u, v))
+    """The photo points of the grid `v` (rows) x `u` (columns) on the chart (m), and whether
+    the plane is in front of the camera there."""
+    (a, b, c), (d, e, f), (g, h, k) = g_inv
+    p2 = g * u[None, :] + (h * v + k)[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
-        x, y = p[0] / p[2], p[1] / p[2]
+        x = (a * u[None, :] + (b * v + c)[:, None]) / p2
+        y = (d * u[None, :] + (e * v + f)[:, None]) / p2
     # the camera's centre maps to the chart's side where the plane is in front: G's inverse
     # keeps the sign of the third coordinate positive for points in front (G = K [r1 r2 t]
     # with t_z > 0 for a chart in view)
-    return x, y, p[2] > 0
+    return x, y, p2 > 0
 
 
 def _singular_values(a, b, c, d):
@@ -274,21 +271,35 @@ def _halve(img: np.ndarray) -> np.ndarray:
 
 
 def _footprint(level_img, level, g_inv, u, v, s, px, py) -> np.ndarray:
-    """The mean of `s x s` bilinear samples of `level_img` over each photo pixel of rows `v`."""
+    """The mean of `s x s` bilinear samples of `level_img` over each photo pixel of rows `v`
+    (beyond the raster's edge, its edge texels: `scipy.ndimage.map_coordinates`'s `"nearest"`)."""
     w = u.size
-    out = np.zeros((v.size, w), np.float64)
+    out = np.zeros((v.size, w), np.float32)
     offsets = (np.arange(s) + 0.5) / s - 0.5
     rows = max(1, _CHUNK // (w * s * s))
     scale = 2.0**level
+    flat = np.ascontiguousarray(level_img, np.float32).reshape(-1)
+    n_rows, n_cols = level_img.shape
+    su = (u[None, :] + offsets[:, None]).reshape(-1)  # (s*w,) column-major in u
     for a in range(0, v.size, rows):
         vv = v[a : a + rows]
-        su = (u[None, :] + offsets[:, None]).reshape(-1)  # (s*w,) column-major in u
         sv = (vv[None, :] + offsets[:, None]).reshape(-1)
         x, y, _ = _to_chart(g_inv, su, sv)
-        col = x / px / scale - 0.5
-        row = y / py / scale - 0.5
-        val = ndimage.map_coordinates(level_img, [row, col], order=1, mode="nearest")
+        col, row = x / (px * scale) - 0.5, y / (py * scale) - 0.5
+        c0, r0 = np.floor(col), np.floor(row)
+        fc, fr = (col - c0).astype(np.float32), (row - r0).astype(np.float32)
+        with np.errstate(invalid="ignore"):  # behind the camera (NaN): masked by the caller
+            c0, r0 = c0.astype(np.intp), r0.astype(np.intp)
+        c1 = np.clip(c0 + 1, 0, n_cols - 1)
+        r1 = np.clip(r0 + 1, 0, n_rows - 1) * n_cols
+        np.clip(c0, 0, n_cols - 1, out=c0)
+        np.clip(r0, 0, n_rows - 1, out=r0)
+        r0 *= n_cols
+        top = flat[r0 + c0]
+        top += fc * (flat[r0 + c1] - top)
+        bottom = flat[r1 + c0]
+        bottom += fc * (flat[r1 + c1] - bottom)
+        top += fr * (bottom - top)
         # (s, rows, s, w): sub-row, row, sub-column, column
-        val = val.reshape(s, vv.size, s, w)
-        out[a : a + rows] = val.mean(axis=(0, 2))
-    return out.astype(np.float32)
+        out[a : a + rows] = top.reshape(s, vv.size, s, w).mean(axis=(0, 2), dtype=np.float64)
+    return out
