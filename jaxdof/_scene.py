@@ -26,10 +26,10 @@ scene needs it, by a measured rule (`jaxdof/_tuning.py`, `fits/treatments.py`):
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
-from scipy import ndimage
 
 from . import _tuning
 from ._corrections import depth_edges, edge_distance_to
@@ -126,10 +126,15 @@ def start_circles(lens_rows: np.ndarray, depth: np.ndarray) -> np.ndarray:
     `forward.max_circle`)."""
     inv_d = 1 / np.asarray(depth, np.float32)
     out = np.zeros(inv_d.shape, np.float32)
+    step = np.empty_like(out)
     for f, n, d_f, pitch in np.asarray(lens_rows, np.float64).reshape(-1, 4):
         u = 0.0 if math.isinf(d_f) else 1.0 / d_f
-        c = f * f / (2 * n * pitch) / (1 - f * u)
-        out = np.maximum(out, np.abs(np.float32(c) * (np.float32(u) - inv_d)))
+        c = f * f / (2 * n * pitch) / (1 - f * u)  # > 0
+        # |c (u - 1/d)|, in place (a 24 MP frame's temporaries cost more than the arithmetic)
+        np.subtract(np.float32(u), inv_d, out=step)
+        np.abs(step, out=step)
+        step *= np.float32(c)
+        np.maximum(out, step, out=out)
     return out
 
 
@@ -164,14 +169,22 @@ def choose_treatment(
         )
         if v is not None
     )
-    r = start_circles(init_rows, depth) * ratio  # image pixels
-    fitted_img = np.repeat(np.repeat(fitted, ratio, 0), ratio, 1)
+    r = start_circles(init_rows, depth)
+    r = r * ratio if ratio != 1 else r  # image pixels
+    fitted_img = np.repeat(np.repeat(fitted, ratio, 0), ratio, 1) if ratio != 1 else fitted
     median = float(np.median(r[fitted_img])) / ratio if fitted_img.any() else 0.0
-    # An edge pixel matters when it or a neighbour across the edge spreads light off its pixel.
-    r_around = ndimage.maximum_filter(r, size=3)
-    edges = depth_edges(depth, jump=DEFAULT_JUMP) & (r_around > _DEAD_ZONE * ratio)
-    n_edges = int(edges.sum())
-    reach = float(r_around[edges].max()) + 1.0 if n_edges else 0.0
+    # An edge pixel matters when it or a neighbour across the edge spreads light off its pixel:
+    # the largest circle of its 3 x 3 neighbourhood (the frame's edge pixels repeated).
+    edges = depth_edges(depth, jump=DEFAULT_JUMP)
+    rows, cols = np.nonzero(edges)
+    h, w = r.shape
+    around = np.zeros(rows.shape, np.float32)
+    for di, dj in itertools.product((-1, 0, 1), repeat=2):
+        around = np.maximum(around, r[np.clip(rows + di, 0, h - 1), np.clip(cols + dj, 0, w - 1)])
+    dead = ~(around > _DEAD_ZONE * ratio)
+    edges[rows[dead], cols[dead]] = False
+    n_edges = int(rows.size - dead.sum())
+    reach = float(around[~dead].max()) + 1.0 if n_edges else 0.0
     dist = edge_distance_to(edges, limit=max(reach, 1.0))
     near = dist < reach
     share = float(np.mean(near[fitted_img])) if fitted_img.any() else 0.0
