@@ -4,6 +4,8 @@ each fitted by default only where a score test at the fit without it rejects; re
 `FitResult.nuisances`; forced on or off; their residual's gradients checked. And the luma
 comparison of a camera JPEG, chosen from the photo's colour detail."""
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -337,6 +339,25 @@ def test_camera_jpeg_is_compared_in_luma():
     forced = jaxdof.fit_lens(image, depth, clean, _lens(4.0, 2.0, 64), luma=True)
     assert forced.nuisances["luma"]["fitted"] and forced.nuisances["luma"]["forced"]
     np.testing.assert_allclose(float(forced.lenses.f_number[0]), 2.8, rtol=1e-3)
+
+
+def test_luma_decision_on_grey_and_colour_images():
+    """`_choose_luma`: an image grey in three channels (a chart's raster) has no colour detail to
+    lose, whatever the photo's (`chroma_detail` nan, no luma), also where rounding leaves its
+    channels a hair apart; a colour image with a photo whose chroma is smooth takes the luma."""
+    from jaxdof._fit.fit import _choose_luma
+
+    rng = np.random.default_rng(3)
+    grey = np.repeat(rng.uniform(0.05, 1.0, (32, 40, 1)), 3, axis=-1).astype(np.float32)
+    smooth = np.repeat(rng.uniform(0.05, 1.0, (16, 20, 3)), 2, 0).repeat(2, 1)
+    photo = (0.5 * grey + 0.1 * smooth).astype(np.float32)  # luma detail, chroma at half size
+    nudged = grey * np.float32([1.0, 1.0 + 1e-7, 1.0])
+    for image in (grey, nudged):
+        on, entry = _choose_luma(image, photo, None)
+        assert not on and math.isnan(entry["chroma_detail"]) and not entry["forced"], entry
+    colour = rng.uniform(0.05, 1.0, (32, 40, 3)).astype(np.float32)
+    on, entry = _choose_luma(colour, photo, None)
+    assert on and entry["chroma_detail"] < 0.5, entry
 
 
 def test_the_cause_of_an_inconsistency_is_named_from_the_residual_pattern():

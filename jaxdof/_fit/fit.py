@@ -266,9 +266,13 @@ def _choose_luma(image, targets, luma: bool | None) -> tuple[bool, dict]:
     colour = np.ndim(image) == 3 and all(a.ndim == 3 and a.shape[-1] == 3 for a in arr)
     detail = math.nan
     if colour and luma is None:
-        of_image = chroma_detail(np.asarray(image))
         # A grey image (a chart's raster in three channels) has no colour detail to lose: its
-        # ratio is rounding over rounding, and says nothing.
+        # ratio is rounding over rounding, and says nothing (equal channels: known without it).
+        img = np.asarray(image)
+        equal = np.array_equal(img[..., 0], img[..., 1]) and np.array_equal(
+            img[..., 1], img[..., 2]
+        )
+        of_image = 0.0 if equal else chroma_detail(img)
         grey = not of_image > _GREY_CHROMA
         detail = math.nan if grey else min(chroma_detail(a) for a in arr) / of_image
     if luma is not None:
