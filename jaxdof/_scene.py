@@ -120,6 +120,13 @@ class Treatment:
         }
 
 
+def rows_of(lenses) -> np.ndarray:
+    """The concrete lenses `lenses` (`jaxdof.ThinLens`, scalar fields) as rows `(T, 4)` of
+    `(f, N, d_f, pitch)`, float64, as `start_circles` takes them."""
+    fields = ("focal_length", "f_number", "focus_distance", "pixel_pitch")
+    return np.array([[float(np.asarray(getattr(n, k))) for k in fields] for n in lenses])
+
+
 def start_circles(lens_rows: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """The largest circle (pixels of the lens's pitch) over lens rows `(T, 4)` of
     `(f, N, d_f, pitch)` at every pixel of `depth` (float32; focus at infinity included, as
@@ -232,12 +239,10 @@ def scene_treatment(
     """
     depth = np.asarray(depth)
     s = int(downsample)
-    row = [float(np.asarray(x)) for x in (lens.focal_length, lens.f_number)]
-    row += [float(np.asarray(lens.focus_distance)), float(np.asarray(lens.pixel_pitch))]
     fitted = np.ones((depth.shape[0] // s, depth.shape[1] // s), bool)
     treatment, _ = choose_treatment(
         depth,
-        np.asarray([row]),
+        rows_of([lens]),
         fitted,
         s,
         occlusion=None,

@@ -21,7 +21,7 @@ from .._fit.solve import stage_note
 from .._holes import near_holes
 from .._lens import ThinLens
 from .._render import render
-from .._scene import start_circles
+from .._scene import rows_of, start_circles
 from ._align import align_view, usable_pixels
 from ._design import Chart
 from ._detect import ChartView, detect_chart, mask_box
@@ -434,13 +434,8 @@ def _background_reach(depth, lenses: Sequence[ThinLens]) -> float:
     infinity does, by the blur scale `K` (`ThinLens.blur_scale`, `r -> K` as `d -> inf`); the
     chart's own circles where they are larger (`r = K |1 - d_f / d|`, near the camera)."""
     near = float(np.nanmin(depth))
-    rows = [
-        [float(np.asarray(x)) for x in (n.focal_length, n.f_number, n.focus_distance)]
-        + [float(np.asarray(n.pixel_pitch))]
-        for n in lenses
-    ]
     # on the host: a few scalars, not eager device calls
-    return float(start_circles(np.asarray(rows), np.array([near, np.inf])).max())
+    return float(start_circles(rows_of(lenses), np.array([near, np.inf])).max())
 
 
 def _fit_chart(sharp, depth, targets, init, fit_options: dict) -> FitResult:
