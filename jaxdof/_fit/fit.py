@@ -300,7 +300,7 @@ def _fit_once(call: dict) -> FitResult | dict:
     p, full_pixels = run.problem, int(run.problem.photo[0] * run.problem.photo[1])
     chosen = None
     try:
-        run, treatment, y0s, rows, chosen = coarse_solve(
+        run, treatment, y0s, chosen, window = coarse_solve(
             run,
             treatment,
             rows0,
@@ -311,7 +311,7 @@ def _fit_once(call: dict) -> FitResult | dict:
         )
         p = run.problem
         model_r, solution, info, r_final, window, notes, args, used = full_resolution(
-            run, y0s, rows, window
+            run, y0s, window
         )
         result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single, used)
         info.update(jax.device_get(stats))

@@ -208,16 +208,15 @@ def _shrink_window(run: Run, window: float, r_final: float, info):
     return model, solution, info2, args, bands, smaller, r2
 
 
-def full_resolution(run: Run, y0s, rows: np.ndarray, window: float):
-    """The full-resolution multi-start solve, refitted (up to twice) with a larger window when
-    the automatic one turns out too small for the solution's circles.
+def full_resolution(run: Run, y0s, window: float):
+    """The full-resolution multi-start solve from `y0s` with `window` (`coarse_solve`'s),
+    refitted (up to twice) with a larger window when the automatic one turns out too small for
+    the solution's circles.
 
     Every refit leaves out the border band of its own window. Returns the residual model, the
     chosen solution (for `finish`), its `info`, the largest fitted circle (px), the final window
     (px), the notes, the `args` solved (weights with the band applied) and the band (px)."""
     p = run.problem
-    if run.levels > 1:
-        window = _fine_window(run, rows)
     notes = []
     y0s = _search_on_every_pixel(run, window, y0s)
     model, solution, info, args, (band, wanted) = run.solve(window, y0s, p.args, 0, run.solver)
@@ -301,7 +300,7 @@ def _init_elsewhere(info, p: Problem, layout) -> bool:
 
 
 def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: int | None):
-    """A fit on tiles up to its full-resolution solve: `(run, y0s, rows, tiles)`, `run` on the
+    """A fit on tiles up to its full-resolution solve: `(run, y0s, tiles, window)`, `run` on the
     mosaic of the tiles (levels 2 with a scout solve, else 1), the starts of the
     full-resolution solve and their lens rows.
 
@@ -327,8 +326,7 @@ def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: i
     if q == 1:
         chosen = choose(window, lambda: pixel_information(p, forward, rows0))
         assert chosen is not None  # `fits_tiles` said there is room
-        run = dataclasses.replace(run, problem=tiled_problem(p, chosen), border=0, levels=1)
-        return run, y0_init, rows0, chosen
+        return _on_chosen(dataclasses.replace(run, levels=1), chosen, y0_init, rows0)
     k = q.bit_length() - 1
     scout = reductions(p, [k])[k]
     run = dataclasses.replace(run, levels=2)
@@ -347,14 +345,23 @@ def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: i
     # (The init's window had room for tiles; a larger fine window may not: then its halos.)
     chosen = choose(fine, information) or choose(window, information)
     assert chosen is not None
+    return _on_chosen(run, chosen, y0s, rows)
+
+
+def _on_chosen(run: Run, chosen: Tiles, y0s, rows: np.ndarray):
+    """`_on_tiles`'s result once the tiles are `chosen`: their halos trimmed to the reach of the
+    starts' circles over the tiles' own depths (they were sized for the whole scene's, which
+    the tiles may not hold: the photo's say on the 1.5 MP scene of `fits/fullres.py` solved
+    circles of 5 px in a 16 px window), `run` on their mosaic, the starts, and the
+    full-resolution window over the mosaic (`_fine_window`)."""
+    p = run.problem
     if run.max_radius is None:
-        # The halos were sized for circles over the whole scene's depths; the tiles hold fewer.
         crops = chosen.mosaic(p.depth, p.ratio, 0, np.nan)
         reach = _fine_window(run, rows, crops[~np.isnan(crops)])
-        halo = min(int(forward.border_band(reach)), chosen.halo)
+        halo = min(int(run.forward.border_band(reach)), chosen.halo)
         chosen = dataclasses.replace(chosen, halo=halo)
     run = dataclasses.replace(run, problem=tiled_problem(p, chosen), border=0)
-    return run, y0s, rows, chosen
+    return run, y0s, chosen, _fine_window(run, rows)
 
 
 def _settle_at_infinity(run: Run, window: float, solved):
@@ -422,13 +429,13 @@ def _better(new, old) -> bool:
 
 def coarse_solve(run: Run, treatment, rows0, window: float, budget, levels, own_choice: bool):
     """The starts' solves before the full-resolution one: coarse-to-fine on the whole frame, or
-    the scout and the choice of tiles (`budget` pixels). Returns `(run, treatment, y0s, rows,
-    chosen)`, `chosen` the tiles (`None` on the whole frame); on tiles the occlusion render the
+    the scout and the choice of tiles (`budget` pixels). Returns `(run, treatment, y0s,
+    chosen, window)`, `chosen` the tiles (`None` on the whole frame); on tiles the occlusion render the
     fit chose itself (`own_choice`) is kept only where a tile holds a depth edge."""
     p = run.problem
     if budget is None:  # `run.levels` set (`_set_up`)
         y0s, rows = _coarse_to_fine(run, rows0)
-        return run, treatment, y0s, rows, None
+        return run, treatment, y0s, None, _fine_window(run, rows) if run.levels > 1 else window
     occluding = run.forward
     chosen_here = treatment.occlusion and own_choice
     if chosen_here:
@@ -436,9 +443,9 @@ def coarse_solve(run: Run, treatment, rows0, window: float, budget, levels, own_
         # tiles keep clear of edges where they can, and only tiles holding one need the
         # occlusion render (2-3x the soft filter's cost per step).
         run = dataclasses.replace(run, forward=dataclasses.replace(occluding, method="soft"))
-    run, y0s, rows, chosen = _on_tiles(run, rows0, window, budget, levels)
+    run, y0s, chosen, window = _on_tiles(run, rows0, window, budget, levels)
     if chosen_here and not edge_free(p, chosen):
         run = dataclasses.replace(run, forward=occluding)
     elif chosen_here:
         treatment = dataclasses.replace(treatment, occlusion=False, method="soft")
-    return run, treatment, y0s, rows, chosen
+    return run, treatment, y0s, chosen, window
