@@ -104,7 +104,7 @@ def test_exposure_residual_gradients():
     """The residual with a gain and an offset (`exposure=True`): float64 finite differences of its
     derivatives in every coordinate, lens and exposure, forward and reverse."""
     image, depth = (x.astype(np.float64) for x in _scene(12, 14))
-    lens = _lens(2.8, 2.5, 14)
+    lens = _lens(2.8, 2.5)  # circles of 1-2 px (out of the dead zone) on the 14 px scene
     target = 0.9 * np.asarray(jaxdof.render(image, depth, lens)) + 0.02
     image, depth, targets, sqrt_w, base, _ = prepare._prepare(
         image, depth, target, lens, None, jaxdof.DefocusModel()
@@ -115,7 +115,37 @@ def test_exposure_residual_gradients():
     off = np.asarray(base).copy()
     off[:, 1] *= 1.2
     y = model.pack(jnp.asarray(off), lay).at[-2:].set(jnp.asarray([0.95, 0.01]))
-    check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"))
+    # A step of 1e-6: a circle's coverage of a pixel is C1 in its radius where the circle crosses
+    # the pixel's corner, so the default step's differences see the second derivative's jump.
+    check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+def test_materialised_jacobian_renders_the_lens_columns_and_is_the_plain_one():
+    """The residual's Jacobian-materialising JVP rule (`_Model.jacobian`: the render
+    differentiated along the lens slots only, the nuisances' columns through the camera) against
+    the plain forward-mode Jacobian of the same residuals, float64, two targets with a shared
+    f-number, exposure and illumination fitted: every column the same, the unread ones 0."""
+    image, depth = (x.astype(np.float64) for x in _scene(12, 14))
+    lenses = [_lens(2.8, 2.5), _lens(2.8, 1.6)]  # circles of 1-2 px on the 14 px wide scene
+    targets = [0.9 * np.asarray(jaxdof.render(image, depth, x)) + 0.02 for x in lenses]
+    image, depth, targets, sqrt_w, base, _ = prepare._prepare(
+        image, depth, targets, lenses, None, jaxdof.DefocusModel()
+    )
+    on = ("exposure", "illumination")
+    spec = layout._Spec(("f_number", "focus_distance"), ("f_number",), 2, on)
+    lay = spec.layout(base, depth)
+    model = residual._Model(2, 4.0, on, jaxdof.DefocusModel(), len(spec.used))
+    args = (image, depth, targets, sqrt_w, lay)
+    off = np.asarray(base).copy()
+    off[:, 1] *= 1.2
+    y = model.pack(jnp.asarray(off), lay)
+    y = y.at[6:].set(jnp.asarray([0.95, 0.9, 0.01, -0.02, -0.1, 0.05, 0.02, 0.1]))
+    got = np.asarray(jax.jacfwd(lambda y: model(y, args))(y))
+    want = np.asarray(jax.jacfwd(lambda y: model.residuals(y, args))(y))
+    used = list(spec.used)
+    assert np.all(np.abs(want[:, used]).max(axis=0) > 0)  # every free slot moves the photos
+    np.testing.assert_allclose(got[:, used], want[:, used], rtol=1e-12, atol=1e-14)
+    assert not np.any(got[:, [i for i in range(y.shape[0]) if i not in used]])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -256,7 +286,7 @@ def test_nuisance_columns_are_the_derivatives_of_the_model_with_the_nuisance():
     """`nuisance_columns` (the score test's columns, from one render) against the Jacobian of
     the residual of a model that has the nuisances, at their null values, in float64."""
     image, depth = (x.astype(np.float64) for x in _scene(12, 14))
-    lens = _lens(2.8, 2.5, 14)
+    lens = _lens(2.8, 2.5)  # circles of 1-2 px (out of the dead zone) on the 14 px scene
     target = 0.9 * np.asarray(jaxdof.render(image, depth, lens)) + 0.02
     image, depth, targets, sqrt_w, base, _ = prepare._prepare(
         image, depth, target, lens, None, jaxdof.DefocusModel()
@@ -282,7 +312,7 @@ def test_residual_gradients_with_every_nuisance_and_luma():
     comparison: float64 finite differences of its derivatives in every coordinate, forward and
     reverse, away from the null values (a shift of 0.3 px, 1 % magnification)."""
     image, depth = (x.astype(np.float64) for x in _scene(12, 14))
-    lens = _lens(2.8, 2.5, 14)
+    lens = _lens(2.8, 2.5)  # circles of 1-2 px (out of the dead zone) on the 14 px scene
     target = 0.9 * np.asarray(jaxdof.render(image, depth, lens)) + 0.02
     image, depth, targets, sqrt_w, base, _ = prepare._prepare(
         image, depth, target, lens, None, jaxdof.DefocusModel()

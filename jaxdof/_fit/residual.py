@@ -105,13 +105,47 @@ class _Model(eqx.Module):
 
     def residuals(self, y, args) -> Array:
         """`__call__` without the Jacobian-materialising JVP rule (the plain forward model)."""
-        _, _, targets, sqrt_w, _ = args
+        return self.from_render(self.render(y.astype(args[2].dtype), args), y, args)
+
+    def from_render(self, raw, y, args) -> Array:
+        """`residuals` from the renders `raw` at `y`'s lenses: what the camera adds, less the
+        targets, weighted."""
+        _, _, targets, sqrt_w, layout = args
         # The solver may carry `y` in a wider dtype than the data (see `solve._solve`): the model
         # runs in the data's precision and the residuals are handed back in the solver's dtype.
         y_dtype = y.dtype
         y = y.astype(targets.dtype)
-        r = ((self.predict(y, args) - targets) * sqrt_w).reshape(-1)
+        pred = camera(raw, self.nuisance_params(y), self.nuisances, self.luma, layout.frame_vu)
+        r = ((pred - targets) * sqrt_w).reshape(-1)
         return jnp.where(jnp.all(jnp.isfinite(y)), r, jnp.nan).astype(y_dtype)
+
+    def jacobian(self, y, args) -> tuple[Array, Array]:
+        """The residuals and their Jacobian `(n, p)` in the live slots (`_Layout.live`), as `p`
+        JVPs that share one primal evaluation. The render depends on the lens slots alone, so
+        it is differentiated along those only; the nuisances' columns (which come after them,
+        `layout._Spec`) go through what the camera adds to the one render: a chart fit with
+        exposure and illumination renders 2 tangents, not 6."""
+        live = jnp.arange(y.shape[0]) if self.n_live is None else jnp.asarray(args[-1].live)
+        basis = jax.nn.one_hot(live, y.shape[0], dtype=y.dtype)
+        n_lens = basis.shape[0] - self.n_targets * len(coords.nuisance_names(self.nuisances))
+        if n_lens == basis.shape[0]:
+            column = lambda t: jax.jvp(lambda y_: self.residuals(y_, args), (y,), (t,))  # noqa: E731
+            with in_jacobian():  # the soft filter's crossover for Jacobians
+                return jax.vmap(column, out_axes=(None, 1))(basis)
+        render = lambda y_: self.render(y_.astype(args[2].dtype), args)  # noqa: E731
+        with in_jacobian():
+            raw, d_raw = jax.vmap(lambda t: jax.jvp(render, (y,), (t,)), out_axes=(None, 0))(
+                basis[:n_lens]
+            )
+        camera_jvp = lambda t, d: jax.jvp(  # noqa: E731
+            lambda raw_, y_: self.from_render(raw_, y_, args), (raw, y), (d, t)
+        )
+        r, lens = jax.vmap(camera_jvp, out_axes=(None, 1))(basis[:n_lens], d_raw)
+        nuisance = jax.vmap(
+            lambda t: jax.jvp(lambda y_: self.from_render(raw, y_, args), (y,), (t,))[1],
+            out_axes=1,
+        )(basis[n_lens:])
+        return r, jnp.concatenate([lens, nuisance], axis=1)
 
 
 # The residual with a JVP rule that materialises the Jacobian. Optimistix's Gauss-Newton family
@@ -134,19 +168,13 @@ def _residuals_jvp(static: _Model, primals, tangents):
     dynamic, y, args = primals
     dynamic_dot, y_dot, args_dot = tangents
     model = eqx.combine(dynamic, static)
-    # Only the live slots: the others are read by no field, so their columns are exactly zero.
-    live = jnp.arange(y.shape[0]) if model.n_live is None else jnp.asarray(args[-1].live)
-    basis = jax.nn.one_hot(live, y.shape[0], dtype=y.dtype)
-
-    def column(t):
-        return jax.jvp(lambda y_: model.residuals(y_, args), (y,), (t,))
-
     if isinstance(y_dot, SymbolicZero):  # differentiated with respect to the data only
         r = model.residuals(y, args)
         out = jnp.zeros_like(r)
     else:
-        with in_jacobian():  # the soft filter's crossover for Jacobians
-            r, jac = jax.vmap(column, out_axes=(None, 1))(basis)
+        # Only the live slots: the others are read by no field, so their columns are exactly 0.
+        live = jnp.arange(y.shape[0]) if model.n_live is None else jnp.asarray(args[-1].live)
+        r, jac = model.jacobian(y, args)
         out = jac @ y_dot[live]
     # Derivatives with respect to the data (e.g. implicit differentiation of a fit with respect to
     # the image) or the model's arrays are rare: a plain JVP through the render, only for the
