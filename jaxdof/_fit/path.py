@@ -351,9 +351,8 @@ def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: i
 def _on_chosen(run: Run, chosen: Tiles, y0s, rows: np.ndarray):
     """`_on_tiles`'s result once the tiles are `chosen`: their halos trimmed to the reach of the
     starts' circles over the tiles' own depths (they were sized for the whole scene's, which
-    the tiles may not hold: the photo's say on the 1.5 MP scene of `fits/fullres.py` solved
-    circles of 5 px in a 16 px window), `run` on their mosaic, the starts, and the
-    full-resolution window over the mosaic (`_fine_window`)."""
+    the tiles may not hold), `run` on their mosaic, the starts, and the full-resolution window
+    over the mosaic (`_fine_window`), whether a scout or an earlier fit chose the tiles."""
     p = run.problem
     if run.max_radius is None:
         crops = chosen.mosaic(p.depth, p.ratio, 0, np.nan)
@@ -429,9 +428,10 @@ def _better(new, old) -> bool:
 
 def coarse_solve(run: Run, treatment, rows0, window: float, budget, levels, own_choice: bool):
     """The starts' solves before the full-resolution one: coarse-to-fine on the whole frame, or
-    the scout and the choice of tiles (`budget` pixels). Returns `(run, treatment, y0s,
-    chosen, window)`, `chosen` the tiles (`None` on the whole frame); on tiles the occlusion render the
-    fit chose itself (`own_choice`) is kept only where a tile holds a depth edge."""
+    the scout and the choice of tiles (`budget` pixels). Returns `(run, treatment, y0s, chosen,
+    window)`: `chosen` the tiles (`None` on the whole frame), `window` the full-resolution
+    solve's. On tiles the occlusion render the fit chose itself (`own_choice`) is kept only
+    where a tile holds a depth edge."""
     p = run.problem
     if budget is None:  # `run.levels` set (`_set_up`)
         y0s, rows = _coarse_to_fine(run, rows0)

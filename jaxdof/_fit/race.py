@@ -28,10 +28,9 @@ a plateau and would then fall steeply; `fits/raytraced_default.py` (48 ray-trace
 The driver is optimistix's iterative loop (`init`, then `step` and `terminate` until done, then
 `postprocess`) over all starts at once, with the pace test between steps. Each step advances
 the running starts one at a time (a `lax.cond` per start), so a start that has converged or
-stopped costs nothing while the others run: a vmapped step computed every start until the
-slowest was done (the 1.5 MP scout of `fits/fullres.py`, 7, 19, 6 and 7 steps: 76 start-steps
-for 39; its solve 5.3 s against 2.9 s warm, the same lens). It needs the residual at each start's accepted point, which the Gauss-Newton family
-(Levenberg-Marquardt, Dogleg, Gauss-Newton) keeps in its state; for other solvers `race` returns
+stopped costs nothing while the others run (a vmapped step would compute every start for as
+long as the slowest one runs). It needs the residual at each start's accepted point, which the
+Gauss-Newton family (Levenberg-Marquardt, Dogleg, Gauss-Newton) keeps in its state; for other solvers `race` returns
 None and the caller solves the starts independently.
 """
 

@@ -119,14 +119,18 @@ class _Model(eqx.Module):
         r = ((pred - targets) * sqrt_w).reshape(-1)
         return jnp.where(jnp.all(jnp.isfinite(y)), r, jnp.nan).astype(y_dtype)
 
+    def live(self, y, args) -> Array:
+        """The slots of `y` that some field reads (`_Layout.live`; every slot without `n_live`):
+        the others' Jacobian columns are 0 by construction."""
+        return jnp.arange(y.shape[0]) if self.n_live is None else jnp.asarray(args[-1].live)
+
     def jacobian(self, y, args) -> tuple[Array, Array]:
         """The residuals and their Jacobian `(n, p)` in the live slots (`_Layout.live`), as `p`
         JVPs that share one primal evaluation. The render depends on the lens slots alone, so
         it is differentiated along those only; the nuisances' columns (which come after them,
         `layout._Spec`) go through what the camera adds to the one render: a chart fit with
         exposure and illumination renders 2 tangents, not 6."""
-        live = jnp.arange(y.shape[0]) if self.n_live is None else jnp.asarray(args[-1].live)
-        basis = jax.nn.one_hot(live, y.shape[0], dtype=y.dtype)
+        basis = jax.nn.one_hot(self.live(y, args), y.shape[0], dtype=y.dtype)
         n_lens = basis.shape[0] - self.n_targets * len(coords.nuisance_names(self.nuisances))
         if n_lens == basis.shape[0]:
             column = lambda t: jax.jvp(lambda y_: self.residuals(y_, args), (y,), (t,))  # noqa: E731
@@ -172,10 +176,8 @@ def _residuals_jvp(static: _Model, primals, tangents):
         r = model.residuals(y, args)
         out = jnp.zeros_like(r)
     else:
-        # Only the live slots: the others are read by no field, so their columns are exactly 0.
-        live = jnp.arange(y.shape[0]) if model.n_live is None else jnp.asarray(args[-1].live)
         r, jac = model.jacobian(y, args)
-        out = jac @ y_dot[live]
+        out = jac @ y_dot[model.live(y, args)]
     # Derivatives with respect to the data (e.g. implicit differentiation of a fit with respect to
     # the image) or the model's arrays are rare: a plain JVP through the render, only for the
     # inputs that carry one.
