@@ -302,7 +302,7 @@ def _init_elsewhere(info, p: Problem, layout) -> bool:
 def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: int | None):
     """A fit on tiles up to its full-resolution solve: `(run, y0s, tiles, window)`, `run` on the
     mosaic of the tiles (levels 2 with a scout solve, else 1), the starts of the
-    full-resolution solve and their lens rows.
+    full-resolution solve, the tiles and that solve's window (`_on_chosen`).
 
     The starts are solved on a scout, the whole photo box-averaged by `q` (`scout_factor`), the
     coarse level of a two-level pyramid; the information that chooses the tiles is that of the

@@ -30,8 +30,8 @@ The driver is optimistix's iterative loop (`init`, then `step` and `terminate` u
 the running starts one at a time (a `lax.cond` per start), so a start that has converged or
 stopped costs nothing while the others run (a vmapped step would compute every start for as
 long as the slowest one runs). It needs the residual at each start's accepted point, which the
-Gauss-Newton family (Levenberg-Marquardt, Dogleg, Gauss-Newton) keeps in its state; for other solvers `race` returns
-None and the caller solves the starts independently.
+Gauss-Newton family (Levenberg-Marquardt, Dogleg, Gauss-Newton) keeps in its state; for other
+solvers `race` returns None and the caller solves the starts independently.
 """
 
 from __future__ import annotations

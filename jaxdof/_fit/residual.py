@@ -80,11 +80,6 @@ class _Model(eqx.Module):
 
         return jax.vmap(one)(self.lenses(y, layout))
 
-    def predict(self, y, args) -> Array:
-        """Predicted targets `(T, H, W[, C])` (one channel with `luma`) for parameters `y`."""
-        raw, layout = self.render(y, args), args[4]
-        return camera(raw, self.nuisance_params(y), self.nuisances, self.luma, layout.frame_vu)
-
     def rounding(self, args) -> Array:
         """Each residual's own rounding `(n,)`, `eps |sqrt(w) T|` in the data's precision: a render
         rounds at about the size of the target it matches. The default solver stops where a step's
