@@ -446,15 +446,22 @@ def _exact_view(c, homography) -> jaxdof.ChartView:
     )
 
 
-def test_align_with_the_lens_blur(chart, tilted):
+@pytest.mark.parametrize("patches", [False, True])
+def test_align_with_the_lens_blur(chart, tilted, monkeypatch, patches):
     """A photo from `jaxdof.render` (f/1.4 focused at 0.55 m: circles 0-3.7 px across the chart)
     and a homography whose corners are 0.4-0.6 px off: aligned with the lens's render of the
     chart, each pixel blurred by its own circle, the corners come within 0.1 px of the truth and
-    the focal length in pixels from the homography within 1 %."""
+    the focal length in pixels from the homography within 1 %. Also where the chart has more
+    pixels than are compared (`patches`: a grid of squares, the template rendered on them
+    alone), whose template is the render of the whole frame there."""
     import cv2
 
-    from jaxdof._chart._align import align_view, usable_pixels
+    from jaxdof._chart import _align
+    from jaxdof._chart._align import align_view, alignment_samples, render_template, usable_pixels
 
+    if patches:
+        monkeypatch.setattr(_align, "_SAMPLES", 4000)
+        monkeypatch.setattr(_align, "_PATCH", 24)
     c, raster = chart
     pose, camera, scene = tilted
     lens = _lens(1.4, 0.55)
@@ -468,10 +475,21 @@ def test_align_with_the_lens_blur(chart, tilted):
     view = _exact_view(c, start)
     at = chart_pose(*view.grid(), camera)
     sharp, depth = jaxdof.chart_scene(c, raster, at, camera, SHAPE)
-    template = np.asarray(jaxdof.render(sharp, depth, lens, fill_holes=True))
     reach = float(np.nanmax(np.asarray(jaxdof.coc_radius(jaxdof.fill_depth_holes(depth), lens))))
+    samples = alignment_samples(usable_pixels(depth, reach))
+    templates = render_template(sharp, depth, lens, samples.boxes, reach)
+    assert 4 < len(templates) <= 9 if patches else len(templates) == 1
+    assert samples.ys.size < 4000 if patches else samples.ys.size > 8000
+    whole = np.asarray(jaxdof.render(sharp, depth, lens, fill_holes=True))
+    for (r0, _, c0, _), t, k in zip(samples.boxes, templates, samples.groups):
+        np.testing.assert_allclose(
+            t[samples.ys[k] - r0, samples.xs[k] - c0],
+            whole[samples.ys[k], samples.xs[k]],
+            rtol=1e-5,
+            atol=1e-6,
+        )
     at_h = at.homography(camera)
-    aligned, moved = align_view(photo, view, template, at_h, usable_pixels(depth, reach))
+    aligned, moved = align_view(photo, view, templates, at_h, samples)
     assert _outline_error(view, truth, c.corners) > 0.5
     assert _outline_error(aligned, truth, c.corners) < 0.1
     assert 0.4 < moved < 0.8

@@ -20,11 +20,10 @@ from .._fit import FitResult, fit_lens
 from .._fit.solve import stage_note
 from .._holes import near_holes
 from .._lens import ThinLens
-from .._render import render
 from .._scene import rows_of, start_circles
-from ._align import align_view, usable_pixels
+from ._align import align_view, alignment_samples, render_template, usable_pixels
 from ._design import Chart
-from ._detect import ChartView, detect_chart, mask_box
+from ._detect import ChartView, detect_chart
 from ._geometry import (
     ChartError,
     ChartPose,
@@ -45,7 +44,6 @@ _SAME_PX, _SAME_SHARE = 2.0, 0.01
 _F_NUMBER = 4.0  # the starting f-number when EXIF has none
 _KEEP = 0.5  # the share of the chart's pixels that the background's band leaves at least
 _GIVEN = "focal length and pixel pitch"
-_SPLINE_PAD = 16  # px rendered beyond the light the alignment's pixels see (`_aligned`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -360,16 +358,12 @@ def _aligned(photo, view, geometry: _Geometry, chart, image, fit: FitResult, k: 
     )
     lens = jax.tree_util.tree_map(lambda x: x[k], fit.lenses)
     reach = _background_reach(depth, [lens])
-    usable = usable_pixels(depth, reach)
-    # Rendered where the alignment looks: the usable pixels' light comes from within `reach`
-    # of them (no hole's reaches them), and the template's cubic spline, whose prefilter decays
-    # by 0.27 a pixel, sees nothing of the zeros 16 px further out.
-    template = np.zeros(depth.shape, np.float32)
-    box = mask_box(usable, math.ceil(reach) + _SPLINE_PAD)
-    if box is not None:
-        template[box] = np.asarray(render(sharp[box], depth[box], lens, fill_holes=True))
+    # The pixels whose light comes from the chart alone (no hole's reaches them), and the
+    # template rendered around those compared only.
+    samples = alignment_samples(usable_pixels(depth, reach))
+    templates = render_template(sharp, depth, lens, samples.boxes, reach)
     at = geometry.poses[k].homography(geometry.camera)
-    return align_view(photo, view, template, at, usable)
+    return align_view(photo, view, templates, at, samples)
 
 
 def _first_focus(fit: FitResult) -> float:
