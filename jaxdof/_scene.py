@@ -154,6 +154,7 @@ def choose_treatment(
     occlusion: bool | None,
     footprint: bool | None,
     edge_weight: bool | float | None,
+    edges: np.ndarray | None = None,
 ) -> tuple[Treatment, np.ndarray | None]:
     """The treatment of a scene and the edge weight on the image grid (`None`: no edge weight).
 
@@ -166,6 +167,7 @@ def choose_treatment(
     - `ratio`: the image's pixels per photo pixel along an axis (`downsample`).
     - `occlusion`, `footprint`, `edge_weight`: the caller's forced choices, `None` to decide
       (`edge_weight` may be a width in photo px).
+    - `edges`: `depth_edges(depth)` where known (not modified), else found here.
     """
     forced = tuple(
         name
@@ -182,7 +184,7 @@ def choose_treatment(
     median = float(np.median(r[fitted_img])) / ratio if fitted_img.any() else 0.0
     # An edge pixel matters when it or a neighbour across the edge spreads light off its pixel:
     # the largest circle of its 3 x 3 neighbourhood (the frame's edge pixels repeated).
-    edges = depth_edges(depth, jump=DEFAULT_JUMP)
+    edges = depth_edges(depth, jump=DEFAULT_JUMP) if edges is None else edges.copy()
     rows, cols = np.nonzero(edges)
     h, w = r.shape
     around = np.zeros(rows.shape, np.float32)

@@ -390,6 +390,23 @@ def test_luma_decision_on_grey_and_colour_images():
     assert on and entry["chroma_detail"] < 0.5, entry
 
 
+def test_chroma_detail_of_a_large_photo_from_bands_spread_over_it(monkeypatch):
+    """Beyond `_CHROMA_PIXELS`, `chroma_detail` reads every k-th band of rows: on a photo about
+    twice that size (every second band) it comes within a few percent of every row's, for colour
+    detail at the pixel scale and for chroma stored at half resolution."""
+    rng = np.random.default_rng(5)
+    monkeypatch.setattr(photo, "_CHROMA_PIXELS", 110_000)
+    luma_detail = rng.uniform(0.05, 1.0, (512, 400, 1)).astype(np.float32)
+    smooth = np.repeat(rng.uniform(0.05, 1.0, (256, 200, 3)), 2, 0).repeat(2, 1)
+    for x in (rng.uniform(0.05, 1.0, (512, 400, 3)), 0.5 * luma_detail + 0.1 * smooth):
+        x = x.astype(np.float32)
+        part = photo.chroma_detail(x)
+        monkeypatch.setattr(photo, "_CHROMA_PIXELS", 10**9)
+        whole = photo.chroma_detail(x)
+        monkeypatch.setattr(photo, "_CHROMA_PIXELS", 110_000)
+        assert part != whole and part == pytest.approx(whole, rel=0.05), (part, whole)
+
+
 def test_the_cause_of_an_inconsistency_is_named_from_the_residual_pattern():
     """`verdict._cause`: a residual growing towards the corners names vignetting; one along depth
     edges names occlusion; one alike everywhere names what every pixel shares."""

@@ -35,6 +35,8 @@ each part the identity at its null value, and each fitted only where the photo n
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -202,8 +204,10 @@ def camera(
     return x[..., 0] if grey else x
 
 
-# Rows per band of `chroma_detail` (temporaries of a few MB at 6000 px wide).
+# Rows per band of `chroma_detail` (temporaries of a few MB at 6000 px wide), and the pixels it
+# reads at most: beyond, every k-th band (a ratio of energies needs no more to be decided).
 _CHROMA_BAND = 256
+_CHROMA_PIXELS = 4_000_000
 
 
 def chroma_detail(photo: np.ndarray) -> float:
@@ -212,7 +216,8 @@ def chroma_detail(photo: np.ndarray) -> float:
     `Cb, Cr` over that of the luma `Y'`. A camera JPEG's chroma, stored at half resolution and
     interpolated, has almost none (measured in `fits/captures.py`); a linear or 4:4:4 photo keeps
     its scene's colour detail and its noise (white noise in R, G, B puts about 0.9 of the luma's
-    energy in each chroma channel). `nan` for a grey photo. In float32, summed in float64."""
+    energy in each chroma channel). `nan` for a grey photo. In float32, summed in float64; over
+    bands of rows spread across the frame, about `_CHROMA_PIXELS` of its pixels."""
     x = np.asarray(photo)
     if x.ndim != 3 or x.shape[-1] != 3 or min(x.shape[:2]) < 3:
         return float("nan")
@@ -221,7 +226,8 @@ def chroma_detail(photo: np.ndarray) -> float:
     # In bands of rows, each with the two rows below it for the vertical differences (a 24 MP
     # photo at once: temporaries of gigabytes).
     b = _CHROMA_BAND
-    for r0 in range(0, x.shape[0], b):
+    every = max(1, math.ceil(x.shape[0] * x.shape[1] / _CHROMA_PIXELS))
+    for r0 in range(0, x.shape[0], b * every):
         c = _srgb(x[r0 : r0 + b + 2].astype(np.float32, copy=False), np) @ to_ycc.T  # (rows, W, 3)
         d2x = c[:b, :-2] - 2 * c[:b, 1:-1] + c[:b, 2:]
         d2y = c[:-2] - 2 * c[1:-1] + c[2:]

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._corrections import depth_edges
 from .._filters.common import is_concrete
 from .._holes import depth_holes, filled, near_holes
 from .._lens import ThinLens
@@ -195,6 +196,21 @@ def prepared_once() -> Iterator[None]:
         yield
     finally:
         _PREPARED.reset(token)
+
+
+def scene_edges(depth: np.ndarray) -> np.ndarray:
+    """`jaxdof.depth_edges(depth)` (read-only), once per depth map within `prepared_once`: the
+    scene's rule and the tiles' choice ask it of every refit's same prepared depth (a 24 MP map:
+    most of a second each)."""
+    memo = _PREPARED.get()
+    if memo is None:
+        return depth_edges(depth)
+    key = ("edges", id(depth))
+    if key not in memo:
+        edges = depth_edges(depth)
+        edges.flags.writeable = False
+        memo[key] = (depth, edges)  # (held, so that its id stays its own)
+    return memo[key][1]
 
 
 def _prepared_arrays(image, depth, targets, weight, model, luma: bool, init) -> tuple:

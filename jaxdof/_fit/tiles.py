@@ -63,7 +63,7 @@ from .. import _tuning
 from .._corrections import depth_edges
 from .layout import pack
 from .photo import frame
-from .prepare import Problem
+from .prepare import Problem, scene_edges
 from .residual import _Model
 from .solve import restate, run_stage
 from .strategies import auto_levels, reductions, window_of
@@ -305,7 +305,7 @@ def choose_tiles(
     cq = np.minimum(starts_c // q, wq - k)
     cand = _box_sums(info, k, rq, cq) * (side * side / (k * k))  # (nr, nc, P, P)
     usable = np.ones(cand.shape[:2], bool)
-    edges = depth_edges(p.depth)
+    edges = scene_edges(p.depth)
     s = p.ratio
     crop = (side + 2 * halo) * s
     # int32 counts: a 24 MP frame's integral image in 96 MB, not float64's 192 MB per copy

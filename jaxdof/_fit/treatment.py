@@ -30,7 +30,7 @@ from .._scene import (
     start_circles as start_circles,
 )
 from .forward import AbstractForwardModel, DefocusModel
-from .prepare import Problem
+from .prepare import Problem, scene_edges
 
 
 def check_edge_weight(edge_weight) -> None:
@@ -68,6 +68,7 @@ def treat_scene(
         occlusion=occlusion,
         footprint=footprint,
         edge_weight=edge_weight,
+        edges=scene_edges(p.depth),
     )
     if model is None:
         chosen = (
