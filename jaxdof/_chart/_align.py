@@ -67,8 +67,10 @@ def alignment_samples(usable: np.ndarray) -> Samples:
         patches = [(lo_r, hi_r, lo_c, hi_c)]
     else:
         n = math.ceil(math.sqrt(_SAMPLES / _PATCH**2))
-        rows = np.linspace(lo_r, max(lo_r, hi_r - _PATCH), n).round().astype(int)
-        cols = np.linspace(lo_c, max(lo_c, hi_c - _PATCH), n).round().astype(int)
+        # (squares apart: no more of them along an axis than it holds)
+        n_r, n_c = (min(n, max(1, span // _PATCH)) for span in (hi_r - lo_r, hi_c - lo_c))
+        rows = np.linspace(lo_r, max(lo_r, hi_r - _PATCH), n_r).round().astype(int)
+        cols = np.linspace(lo_c, max(lo_c, hi_c - _PATCH), n_c).round().astype(int)
         patches = [(int(r), int(r) + _PATCH, int(c), int(c) + _PATCH) for r in rows for c in cols]
     out_ys, out_xs, boxes, groups, count = [], [], [], [], 0
     for r0, r1, c0, c1 in patches:

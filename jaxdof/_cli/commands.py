@@ -438,11 +438,13 @@ def _start(
     defaults: dict[str, float] = {
         "focal_length": focal_length,
         "f_number": 4.0,
-        "focus_distance": float(np.nanmedian(depth)),  # (NaN: depth holes)
         "sensor_width": FULL_FRAME_WIDTH,
     }
+    if given["focus_distance"] is None and "focus_distance" not in read:
+        # the scene's median depth (NaN: holes), found only where needed (24 MP: a second)
+        defaults["focus_distance"] = float(np.nanmedian(depth))
     values = {
-        name: value if value is not None else read.get(name, defaults[name])
+        name: value if value is not None else read[name] if name in read else defaults[name]
         for name, value in given.items()
     }
     if exif is None:
