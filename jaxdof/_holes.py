@@ -66,7 +66,9 @@ def filled(depth: np.ndarray, holes: np.ndarray) -> np.ndarray:
 def near_holes(holes: np.ndarray, reach: float, ratio: int = 1) -> np.ndarray:
     """Photo pixels `(H / ratio, W / ratio)` within `reach` image pixels of a hole of the image
     grid `holes` `(H, W)` (a pixel whose `ratio x ratio` block holds one such image pixel)."""
-    limit = float(max(reach, 0.0)) + 1.0
-    near = edge_distance_to(holes, limit=limit) <= math.ceil(reach)
+    if math.ceil(reach) <= 0:  # the holes themselves (no distances needed)
+        near = np.asarray(holes, bool)
+    else:
+        near = edge_distance_to(holes, limit=float(reach) + 1.0) <= math.ceil(reach)
     h, w = near.shape
     return np.asarray(near.reshape(h // ratio, ratio, w // ratio, ratio).any(axis=(1, 3)))
