@@ -166,8 +166,7 @@ def render(
         assert rows is not None
         return _render_bands(image, depth, lens, rows, window=window, **options)
     image, depth = jnp.asarray(image), jnp.asarray(depth)  # already arrays (for the types)
-    depth = _error_if_invalid(depth, lens)  # traced: error at run time (equinox.error_if)
-    radius = _circles(image, depth, lens, s)
+    radius = _checked_circles(image, depth, lens, s)
     return _filter(image, depth, radius, window=window, **options)
 
 
@@ -230,6 +229,13 @@ def _circles(image: Array, depth: Array, lens: ThinLens, s: int) -> Array:
     """The circle of every input pixel, in input pixels (`s` per photo pixel)."""
     radius = coc_radius(depth, lens).astype(jnp.result_type(image.dtype, depth.dtype))
     return radius * s if s > 1 else radius
+
+
+@functools.partial(jax.jit, static_argnums=3)
+def _checked_circles(image: Array, depth: Array, lens: ThinLens, s: int) -> Array:
+    """`_circles` after `_error_if_invalid`, one compiled program: eager, their two dozen
+    array operations would each compile on a process's first call (a second or more)."""
+    return _circles(image, _error_if_invalid(depth, lens), lens, s)
 
 
 def _filter(image, depth, radius, *, method, window, normalize, footprint, s) -> Array:
@@ -304,7 +310,7 @@ def _render_bands(image, depth, lens: ThinLens, rows: int, *, method, window, s,
     h_in = image.shape[0]
 
     def circles(lo: int, hi: int) -> Array:
-        return _circles(jnp.asarray(image[lo:hi]), jnp.asarray(depth[lo:hi]), lens, s)
+        return _checked_circles(jnp.asarray(image[lo:hi]), jnp.asarray(depth[lo:hi]), lens, s)
 
     # The whole frame's window and method choices, as coc_filter makes them on the whole frame.
     prepares = type(method).prepare is not AbstractMethod.prepare

@@ -172,9 +172,9 @@ def test_bands_of_the_frame_or_more_are_the_whole_frame_also_under_jit():
     """`band_rows` at least the frame's height is the whole-frame render, which runs under jit."""
     image, depth = _scene()
     lens = _lens(SMALL)
-    whole = np.asarray(jaxdof.render(image, depth, lens, max_radius=3.0))
+    whole = jax.jit(lambda im, z: jaxdof.render(im, z, lens, max_radius=3.0))
     fn = jax.jit(lambda im, z: jaxdof.render(im, z, lens, max_radius=3.0, band_rows=H))
-    np.testing.assert_array_equal(np.asarray(fn(image, depth)), whole)
+    np.testing.assert_array_equal(np.asarray(fn(image, depth)), np.asarray(whole(image, depth)))
 
 
 def test_refusals():

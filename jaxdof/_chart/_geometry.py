@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from jaxtyping import Float
@@ -201,16 +204,16 @@ def chart_scene(
     normal = pose.rotation[:, 2]
     k_inv = np.linalg.inv(camera)
     plane = float(normal @ pose.translation)
-    raster = np.asarray(image, np.float32)
-    levels = [raster]
+    levels = _Levels(np.asarray(image, np.float32))
     px, py = chart.pitch
-    mean = float(raster.mean())
+    mean = float(levels[0].mean())
     sharp = np.full((h, w), mean, np.float32)
     depth = np.full((h, w), np.nan, np.float32)
     u = np.arange(w, dtype=np.float64)
     # the plane's depth along each pixel's ray: z = plane / (n . K^-1 (u, v, 1)), linear in u, v
     nk = normal @ k_inv
-    for a in range(0, h, _BLOCK_ROWS):
+
+    def band(a: int) -> None:
         b = min(h, a + _BLOCK_ROWS)
         v = np.arange(a, b, dtype=np.float64)
         z = plane / (nk[0] * u[None, :] + (nk[1] * v + nk[2])[:, None])
@@ -222,7 +225,7 @@ def chart_scene(
         on = inside[:-1, :-1] & inside[1:, :-1] & inside[:-1, 1:] & inside[1:, 1:] & (z > 0)
         depth[a:b] = np.where(on, z, np.nan)
         if not on.any():
-            continue
+            return
         # the Jacobian (raster pixels per photo pixel) from the corners
         jxu = (cx[:-1, 1:] + cx[1:, 1:] - cx[:-1, :-1] - cx[1:, :-1]) / 2
         jxv = (cx[1:, :-1] + cx[1:, 1:] - cx[:-1, :-1] - cx[:-1, 1:]) / 2
@@ -231,13 +234,38 @@ def chart_scene(
         s_max, s_min = _singular_values(jxu[on], jxv[on], jyu[on], jyv[on])
         level = max(0, int(math.floor(math.log2(max(1.0, float(s_min.min()))))))
         samples = int(min(_MAX_SAMPLES, max(1, math.ceil(float(s_max.max()) / 2**level))))
-        while len(levels) <= level:
-            levels.append(_halve(levels[-1]))
         cols = np.flatnonzero(on.any(axis=0))  # sampled where the chart is
         lo, hi = int(cols[0]), int(cols[-1]) + 1
         inner = _footprint(levels[level], level, g_inv, u[lo:hi], v, samples, px, py)
         sharp[a:b, lo:hi] = np.where(on[:, lo:hi], inner, mean)
+
+    # The bands write disjoint rows; numpy's gathers and arithmetic release the GIL, so they
+    # share the host's cores.
+    with ThreadPoolExecutor(max_workers=_workers()) as pool:
+        for done in [pool.submit(band, a) for a in range(0, h, _BLOCK_ROWS)]:
+            done.result()
     return sharp, depth
+
+
+def _workers() -> int:
+    """Threads for `chart_scene`'s bands: the cores this process may use, at most 4 (each band
+    holds about `_CHUNK` samples of 60 bytes)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(4, cores or 1))
+
+
+class _Levels:
+    """The raster's mip levels (`_halve`), each made once when first asked for (thread-safe)."""
+
+    def __init__(self, raster: np.ndarray):
+        self._levels = [raster]
+        self._lock = threading.Lock()
+
+    def __getitem__(self, level: int) -> np.ndarray:
+        with self._lock:
+            while len(self._levels) <= level:
+                self._levels.append(_halve(self._levels[-1]))
+            return self._levels[level]
 
 
 def _to_chart(g_inv: np.ndarray, u: np.ndarray, v: np.ndarray):
