@@ -283,7 +283,10 @@ def _next_starts(info, base: np.ndarray, y0s: _Arr, spec: _Spec, layout: _Layout
         out = np.concatenate([ys[best][None], np.asarray(y0s)], axis=0)
         th = np.concatenate([theta[best][None], theta], axis=0)
         return out, np.stack([_rows(t, base) for t in th])
-    used = list(spec.used)
+    # The lens slots only: a near/far tie is one of lenses. The nuisances' coefficients are near
+    # 0 (an offset, the light's tilt), where the coarse tolerance's scatter of one basin's
+    # solutions is far beyond `distinct`'s relative margin.
+    used = [i for i in spec.used if i < 3 * spec.n_targets]
     floor = np.asarray(theta_floor(layout, spec.nuisances), np.float64)[used]
     for i in np.argsort(loss):
         if i == best or not converged[i]:
