@@ -15,6 +15,7 @@ from jax.test_util import check_grads
 import jaxdof
 from jaxdof._fit import layout, photo, prepare, residual
 from jaxdof._fit.solve import nuisance_columns, score_statistic
+from jaxdof._fit.strategies import _next_starts
 
 
 def _scene(h=40, w=56, seed=0):
@@ -433,3 +434,30 @@ def test_the_cause_of_an_inconsistency_is_named_from_the_residual_pattern():
     # left and right sides alike.
     sides = 1 + 20 * np.broadcast_to(c**2, (n, n))
     assert "illumination=True" in _cause(sides, flat)
+
+
+def test_next_starts_tell_lenses_apart_not_nuisances():
+    """A coarse level hands the next one a second start only at a distinct lens (a near/far
+    tie): two solutions of one basin whose light's tilt (near 0) differs by the coarse
+    tolerance's scatter are one start; a lens 10 % away within the tie margin is two."""
+    spec = layout._Spec(("f_number", "focus_distance"), (), 1, ("exposure", "illumination"))
+    base = np.array([[0.05, 4.0, 0.6, 6e-6]], np.float32)
+    lay = spec.layout(base, np.full((8, 8), 0.7, np.float32))
+    # theta: f, N, focus power, gain, offset, illumination_x, illumination_y (the scout's starts
+    # 0 and 2 of the 24 MP chart of fits/chart_speed.py)
+    same = [
+        [0.05, 3.764192, 1.667647, 1.000992, -4.560848e-04, 9.482035e-05, -2.713721e-04],
+        [0.05, 3.764207, 1.667644, 1.000992, -4.560633e-04, 9.548868e-05, -2.715399e-04],
+    ]
+    other = [0.05, 3.764192 * 1.1, 1.667647 * 0.9, 1.0, 0.0, 0.0, 0.0]
+    for theta, expected in ((same, 1), ([same[0], other], 2)):
+        info = {
+            "ys": np.arange(14, dtype=np.float32).reshape(2, 7),
+            "loss": np.array([1.5705075, 1.5705081]),
+            "converged": np.array([True, True]),
+            "best": 0,
+            "theta": np.array(theta),
+        }
+        ys, rows = _next_starts(info, base, info["ys"], spec, lay)
+        assert ys.shape == (expected, 7) and rows.shape == (expected, 1, 4)
+        np.testing.assert_array_equal(ys[0], info["ys"][0])
