@@ -6,10 +6,19 @@ filter, off by default, differentiable through `render` in every input, and that
 recovers the lens that rendered its targets.
 """
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdof import coc_filter, coc_radius, fit_lens, footprint_prefilter, render
+from jaxdof import (
+    DefocusModel,
+    ThinLens,
+    coc_filter,
+    coc_radius,
+    fit_lens,
+    footprint_prefilter,
+    render,
+)
 
 from .helpers import EXACT
 from .test_fit import STARTS, WINDOW, lens, rel_err, scene, wrong_init
@@ -72,3 +81,38 @@ def test_fit_through_the_footprint_model():
     plain = fit_lens(image, depth, target, init, **EXACT, **kw)
     k_err = abs(float(plain.lens.blur_scale) / float(true.blur_scale) - 1)
     assert k_err > 1e-3, k_err  # the plain model cannot express the corrected blur
+
+
+def test_footprint_chosen_at_run_time_is_the_static_choice():
+    """`DefocusModel(footprint=<bool array>)` renders what `footprint=True/False` render, and one
+    compiled program serves both values (`fit_lens` tries the correction on and off with it)."""
+    image, depth = scene()
+    true = lens()
+    traces = []
+
+    @eqx.filter_jit
+    def photo(model, im, d):
+        traces.append(1)  # runs once per trace
+        return model(im, d, true, max_radius=WINDOW)
+
+    for on in (True, False):
+        static = DefocusModel(footprint=on)(image, depth, true, max_radius=WINDOW)
+        chosen = photo(DefocusModel(footprint=jnp.asarray(on)), image, depth)
+        np.testing.assert_allclose(chosen, static, rtol=1e-13, atol=1e-15)  # float64
+    assert len(traces) == 1
+    # the border band follows the value (the correction's stencils read two more pixels)
+    assert DefocusModel(footprint=jnp.asarray(True)).border_band(3.0) == 5
+    assert DefocusModel(footprint=jnp.asarray(False)).border_band(3.0) == 3
+
+
+def test_footprint_chosen_at_run_time_gradients():
+    """Image, depth and every lens field through the run-time choice (float64, both values)."""
+    image, depth, inf_mask = _extreme_depths()
+    for on in (True, False):
+        model = DefocusModel(footprint=jnp.asarray(on))
+
+        def f(im, d, fl, n, d_f, pitch, model=model):
+            d = jnp.where(inf_mask, jnp.inf, d)
+            return model(im, d, ThinLens(fl, n, d_f, pitch * 1e-5), max_radius=3.0)
+
+        check(f, (image, depth, *LENS_ARGS), jit=True)

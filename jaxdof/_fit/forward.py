@@ -19,10 +19,11 @@ import abc
 import math
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from equinox import AbstractVar
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from .._corrections import FOOTPRINT_REACH, footprint_prefilter
 from .._custom_types import DepthLike, ImageLike
@@ -141,7 +142,10 @@ class DefocusModel(AbstractForwardModel):
     - `footprint`: the opt-in pixel-footprint correction (default off; `fit_lens` turns it on where
       small circles dominate): it removes the blur-scale bias of a few percent at circles of 1-3 px
       on ray-traced photos, and of up to 14 % on finely textured ones with circles under 1.5 px
-      (`fits/results/raytraced.md`, `fits/results/footprint_order.md`).
+      (`fits/results/raytraced.md`, `fits/results/footprint_order.md`). A scalar boolean array
+      chooses at run time (`jax.lax.cond`), so that renders with and without it share one
+      compiled program: `fit_lens` passes one, and tries the correction on and off at the cost
+      of one compile.
     - `downsample`: the image and depth are this many times the photo's resolution in each axis
       (a pixel-shift capture, say): the photo is the image's `(H, W)` divided by it. Default 1.
       Each render costs about `downsample^2` times more.
@@ -163,7 +167,7 @@ class DefocusModel(AbstractForwardModel):
     """
 
     method: str | AbstractMethod = "soft"
-    footprint: bool = False
+    footprint: bool | Bool[Array, ""] = False
     downsample: int = 1
     normalize: bool = False
     checks: bool = True
@@ -195,8 +199,16 @@ class DefocusModel(AbstractForwardModel):
             ).astype(jnp.result_type(image.dtype, depth.dtype))
             # From here on as `jaxdof.render`: circles and window in the input's pixels.
             radius, window = radius * s, max_radius * s
-            if self.footprint:
-                image = footprint_prefilter(image, jnp.minimum(radius, window))
+            if isinstance(self.footprint, bool):
+                if self.footprint:
+                    image = footprint_prefilter(image, jnp.minimum(radius, window))
+            else:  # chosen at run time: one program, only the chosen branch runs
+                image = jax.lax.cond(
+                    self.footprint,
+                    lambda im: footprint_prefilter(im, jnp.minimum(radius, window)),
+                    lambda im: im,
+                    image,
+                )
             out = coc_filter(
                 image,
                 radius,

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._filters.common import tap_offsets
 from .forward import AbstractForwardModel
 from .layout import pack, theta_floor
 from .lm import bounded
@@ -76,12 +77,21 @@ class Run:
     init_last: bool = False  # the last start is the raw init, outside the window's reach
     extra_band: int = 0  # photo pixels added to the band (a registration's reach)
     boxes: tuple | None = None  # the tiles' interiors where given (an earlier fit's)
+    # The smallest filter window the residual is compiled with (`_kept_stencil`): a refit whose
+    # window shrinks reuses the compiled solve of the larger one. 0: the window itself.
+    stencil: float = 0.0
 
     def residual(self, window: float) -> _Model:
-        """The residual function with a given filter window."""
+        """The residual function with a given filter window (compiled with `stencil` where that
+        is larger: exact either way, the taps past a circle's reach adding 0)."""
         spec = self.problem.spec
         return _Model(
-            spec.n_targets, window, spec.nuisances, self.forward, len(spec.used), spec.luma
+            spec.n_targets,
+            max(window, self.stencil),
+            spec.nuisances,
+            self.forward,
+            len(spec.used),
+            spec.luma,
         )
 
     def solve(self, window: float, y0s, args, level: int, solver, max_steps: int | None = None):
@@ -186,6 +196,23 @@ def _search_on_every_pixel(run: Run, window: float, y0s):
     return np.where(np.isfinite(info["ys"]), info["ys"], y0s).astype(np.asarray(y0s).dtype)
 
 
+# A refit at a smaller window recompiles the full-resolution solve (seconds) to save taps per
+# render: only worth it where the taps saved per render, over every pixel of every target, exceed
+# this (tap-pixels). A render gathers ~1e8-1e9 tap-pixels per second on one core and a solve
+# takes tens of renders, so below it the saving is under a second while the compile of the
+# 40 x 56 test scenes' solve takes 5-10 s.
+_RESTENCIL_WORK = 3e7
+
+
+def _kept_stencil(run: Run, window: float, smaller: float) -> Run:
+    """`run` compiled at `window` for a refit at `smaller` (`Run.stencil`), where the taps the
+    smaller window saves are too few to pay for a compile (`_RESTENCIL_WORK`); else `run`."""
+    saved = len(tap_offsets(window)) - len(tap_offsets(smaller))
+    if run.problem.args[2].size * saved > _RESTENCIL_WORK:
+        return run
+    return dataclasses.replace(run, stencil=max(window, run.stencil))
+
+
 def _shrink_window(run: Run, window: float, r_final: float, info):
     """A refit with the window the solution's circles need, when that is smaller than the one
     the starts needed (`None` otherwise, or with a given `max_radius`).
@@ -201,11 +228,12 @@ def _shrink_window(run: Run, window: float, r_final: float, info):
     if smaller is None:
         return None
     ys = np.where(np.isfinite(info["ys"]), info["ys"], 0).astype(np.asarray(info["ys"]).dtype)
+    run = _kept_stencil(run, window, smaller)
     model, solution, info2, args, bands = run.solve(smaller, ys, p.args, 0, run.solver)
     r2 = run.forward.max_circle(np.asarray(info2["natural"], np.float64), p.d)
     if r2 > smaller:  # the refit's circles outgrow it: keep the first solve
         return None
-    return model, solution, info2, args, bands, smaller, r2
+    return run, model, solution, info2, args, bands, smaller, r2
 
 
 def full_resolution(run: Run, y0s, window: float):
@@ -235,7 +263,7 @@ def full_resolution(run: Run, y0s, window: float):
         r_final = run.forward.max_circle(np.asarray(info["natural"], np.float64), p.d)
     shrunk = _shrink_window(run, window, r_final, info)
     if shrunk is not None:
-        model, solution, info, args, (band, wanted), window, r_final = shrunk
+        run, model, solution, info, args, (band, wanted), window, r_final = shrunk
     solved = _settle_at_infinity(run, window, (model, solution, info, args))
     if solved is not None:
         model, solution, info, args, note = solved

@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 
 from .._filters import as_method
@@ -75,7 +76,9 @@ def treat_scene(
             method if method is not None else (OCCLUSION_METHOD if treatment.occlusion else "soft")
         )
         assert isinstance(forward, DefocusModel)  # the default model (no `model` given)
-        forward = dataclasses.replace(forward, method=chosen, footprint=treatment.footprint)
+        # The footprint as data: the photo's say tries it on and off with one compiled solve.
+        on = jnp.asarray(treatment.footprint)
+        forward = dataclasses.replace(forward, method=chosen, footprint=on)
         name = chosen if isinstance(chosen, str) else type(chosen).__name__
         treatment = dataclasses.replace(treatment, method=name)
     else:
