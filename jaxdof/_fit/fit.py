@@ -313,7 +313,10 @@ def _fit_once(call: dict) -> FitResult | dict:
         model_r, solution, info, r_final, window, notes, args, used = full_resolution(
             run, y0s, window
         )
-        result, stats = run_stage("finish", finish, model_r, solution, args, p.spec, p.single, used)
+        statistical = model_r.statistical()  # one compiled `finish` for every render and window
+        result, stats = run_stage(
+            "finish", finish, statistical, solution, args, p.spec, p.single, used
+        )
         info.update(jax.device_get(stats))
         # The score tests of the nuisances to decide, where the fit leaves something to explain
         # (`select.with_nuisances`); on tiles only those that do not depend on the whole frame.
@@ -329,6 +332,7 @@ def _fit_once(call: dict) -> FitResult | dict:
         return dataclasses.replace(out, treatment=dataclasses.replace(treatment, border=out.border))
     result = dataclasses.replace(
         result,
+        max_radius=window,  # (`finish` saw the statistical model, which has no window)
         border=used,
         treatment=dataclasses.replace(treatment, border=used),
         nuisances=_nuisance_entries(info, p.spec, p.photo, run.extra_band),

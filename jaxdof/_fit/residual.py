@@ -24,6 +24,16 @@ from .layout import _Arr, _Layout
 from .photo import camera
 
 
+class _NoRender(AbstractForwardModel):
+    """The forward model of a `_Model` that only maps `y` to lenses and nuisances
+    (`_Model.statistical`): it renders nothing."""
+
+    differentiable_in_lens: bool = eqx.field(default=False, static=True)
+
+    def __call__(self, image, depth, lens, *, max_radius):
+        raise TypeError("a statistical model renders nothing (`_Model.statistical`)")
+
+
 class _Model(eqx.Module):
     r"""The residual function for optimistix, and the maps between `y` and lenses.
 
@@ -70,6 +80,12 @@ class _Model(eqx.Module):
     def lenses(self, y: Float[Array, " P"], layout: _Layout) -> ThinLens:
         """The lens of every target, a `ThinLens` with fields `(T,)`."""
         return coords.lenses(y, layout)
+
+    def statistical(self) -> _Model:
+        """This model without its forward model and window: what the statistics need (the maps
+        from `y` to lenses and nuisances), so that they compile once for every forward model and
+        window of one free set (the photo's say refits with another render)."""
+        return _Model(self.n_targets, 0.0, self.nuisances, _NoRender(), self.n_live, self.luma)
 
     def render(self, y, args) -> Array:
         """The forward model's renders `(T, H, W[, C])` at the lenses of `y` (no nuisance)."""
