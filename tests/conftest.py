@@ -81,3 +81,17 @@ def pytest_collection_modifyitems(items):
     for item in items:
         if item.nodeid.split("[")[0] in _SLOW:
             item.add_marker(pytest.mark.slow)
+
+
+# Each test's duration as it ends, appended to the file named by JAXDOF_TEST_TIMES (tab-separated:
+# seconds, outcome, test id): the figures for choosing the slow set, and for CI's budget, survive a
+# run that is stopped before pytest's own `--durations` report (printed only at the end).
+# (xdist's workers call the hook too, and send the same reports on: only the controller writes.)
+_TIMES = None if "PYTEST_XDIST_WORKER" in os.environ else os.environ.get("JAXDOF_TEST_TIMES")
+
+
+def pytest_runtest_logreport(report):
+    # every call, and a set-up or tear-down that took a second (a module's fixture) or failed
+    if _TIMES and (report.when == "call" or report.duration > 1 or report.outcome == "failed"):
+        with open(_TIMES, "a", encoding="utf-8") as out:
+            out.write(f"{report.duration:.1f}\t{report.when}:{report.outcome}\t{report.nodeid}\n")
