@@ -175,3 +175,46 @@ def test_gradients_every_input():
     change = np.abs(np.asarray(f(*args)) - np.asarray(f(*args, method=UNFILLED))).max(-1)
     assert (change[1:, :3] > 1e-3).all() and (change[1:, 3:] > 1e-3).all()
     check_grads(f, args, order=1, modes=("fwd", "rev"), eps=1e-6, atol=2e-7, rtol=2e-5)
+
+
+def test_occlusion_off_is_soft_bit_for_bit_and_chosen_at_run_time():
+    """`occlude=False` renders the soft filter bit for bit beside a depth step (where the
+    occlusion render differs from it by a third of the image's range); a scalar boolean array
+    chooses at run time with one compiled program: off the soft filter bit for bit, on the
+    occlusion render to rounding (a run-time factor against a compiled-in constant)."""
+    _, depth, _ = _two_planes(0.0, 0.0)
+    radius = RNG.uniform(0.0, MAXR, (H, W)).astype(np.float32)
+    for dtype in (np.float32, np.float64):
+        image, z, r = (x.astype(dtype) for x in (IMAGE, depth, radius))
+        soft = _filter(jaxdof.Soft(), image, r, z)
+        local = _filter(LOCAL, image, r, z)
+        assert np.abs(local - soft).max() > 0.1  # the step changes the render
+        np.testing.assert_array_equal(_filter(LocalOcclusion(occlude=False), image, r, z), soft)
+        switch = jax.jit(
+            lambda flag, i, r, z: jaxdof.coc_filter(
+                i, r, method=LocalOcclusion(occlude=flag), depth=z, max_radius=MAXR
+            )
+        )
+        off, on = (np.asarray(switch(jnp.asarray(v), image, r, z)) for v in (False, True))
+        np.testing.assert_array_equal(off, soft)
+        np.testing.assert_allclose(on, local, rtol=0, atol=8 * np.finfo(dtype).eps)
+        assert switch._cache_size() == 1
+    for bad in (jnp.asarray([True, False]), jnp.asarray(1.0)):
+        with pytest.raises(ValueError, match="occlude must be"):
+            LocalOcclusion(occlude=bad)
+
+
+@pytest.mark.parametrize("occlude", [False, True])
+def test_gradients_with_occlusion_chosen_at_run_time(occlude):
+    """Image, radius and depth through the run-time switch, both values, forward and reverse,
+    float64, beside a depth step."""
+    rng = np.random.default_rng(1)
+    image = rng.uniform(size=(5, 6, 2))
+    depth = np.where(np.arange(6)[None, :] < 3, 1.6, 5.0) + 0.05 * rng.uniform(size=(5, 6))
+    radius = 1.2 + 2.5 * rng.uniform(size=(5, 6))  # away from 1/2 and the window
+    method = LocalOcclusion(occlude=jnp.asarray(occlude))
+
+    def f(image, radius, depth):
+        return jaxdof.coc_filter(image, radius, method=method, depth=depth, max_radius=5.0)
+
+    check_grads(f, (image, radius, depth), order=1, modes=("fwd", "rev"), eps=1e-6, atol=2e-7)

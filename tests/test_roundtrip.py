@@ -156,13 +156,14 @@ def test_adequacy_passes_noisy_renders_at_its_nominal_rate():
     assert inconsistent <= 2
 
 
-def test_a_default_fit_compiles_one_solve_per_render(caplog):
-    """The default fit of a render of a step traces its solve once per render it tries (the
-    occlusion render it chose and the soft one, the photo's say) and its statistics once,
-    although it solves again at a smaller window (the fitted circles need less than the starts'
-    did) and tries the footprint correction off: on a small photo the refit reuses the larger
-    window's program, the correction is chosen at run time, and the statistics do not depend on
-    the render. (A shape of its own, so that no other test traced these programs first.)"""
+def test_a_default_fit_compiles_one_solve(caplog):
+    """The default fit of a render of a step traces its solve once and its statistics once,
+    although it tries two renders (the occlusion render it chose and the soft one, the photo's
+    say), solves again at a smaller window (the fitted circles need less than the starts' did)
+    and tries the footprint correction off: on a small photo the occlusion and the footprint
+    correction are chosen at run time, the refit reuses the larger window's program, and the
+    statistics do not depend on the render. (A shape of its own, so that no other test traced
+    these programs first.)"""
     image, depth = _scene("step", 44, 60, np.float32)
     photo = jaxdof.render(image, depth, _lens(2.8, 2.5, 60))
     with caplog.at_level(logging.DEBUG, logger="jax._src.dispatch"):
@@ -171,7 +172,7 @@ def test_a_default_fit_compiles_one_solve_per_render(caplog):
     assert bool(fit.success) and "occlusion off" in text and "footprint off" in text, text
     messages = [r.getMessage() for r in caplog.records]
     traced = [m.split()[2] for m in messages if m.startswith("Finished tracing")]
-    assert traced.count("fit_starts") == 2 and traced.count("finish") == 1, traced
+    assert traced.count("fit_starts") == 1 and traced.count("finish") == 1, traced
 
 
 def _readme_example() -> str:

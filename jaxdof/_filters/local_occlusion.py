@@ -116,8 +116,11 @@ import math
 from typing import ClassVar, final
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
+from jaxtyping import Array, Bool
 
 from .._custom_types import DepthLike, Radius
 from .base import AbstractMethod
@@ -204,9 +207,11 @@ def local_occlusion_filter(
     depth: DepthLike,
     jump: float = DEFAULT_JUMP,
     fill: bool = True,
+    occlude: bool | Array = True,
 ) -> ChannelsLast:
     """The soft scatter with per-pair occlusion, and with `fill` the hidden surfaces filled
-    (module docstring)."""
+    (module docstring). `occlude` False (a Python bool or a scalar boolean array, chosen at run
+    time) puts every source on its receiver's surface: the soft filter, bit for bit."""
     h, w, c = image.shape
     dtype = image.dtype
     depth = check_depth_map(depth, (h, w)).astype(dtype)
@@ -219,6 +224,9 @@ def local_occlusion_filter(
     # relative gap stays continuous where both the prediction and the source approach 0.
     floor = 1e-3 * lax.stop_gradient(jnp.max(u)) + jnp.finfo(dtype).tiny
     inv_tol = 1 / math.log1p(jump)
+    if not (isinstance(occlude, bool) and occlude):
+        # 0: every relative gap is 0, so no source leaves its receiver's surface (F = B = 0).
+        inv_tol = inv_tol * jnp.asarray(occlude).astype(dtype)
     p_rad, p_u = (pad_rows_cols(x, pad) for x in (radius, u))
     # The colour with a channel of ones (0 outside the frame: no source there): weighted, the
     # light and the coverage in one array (one sum for both, the cheaper for it).
@@ -306,19 +314,35 @@ class LocalOcclusion(AbstractMethod):
       surface from which a source starts to count as behind it (fully at twice that).
     - `fill`: fill the hidden surfaces (default `True`); `False` composites only the light that
       the all-in-focus image shows (dark halos beside occluders; kept for the study).
+    - `occlude`: `False` puts every source on its receiver's surface, which renders `Soft` bit
+      for bit at this method's cost; a scalar boolean array chooses at run time, so that the
+      occlusion render and the soft one share a compiled program (`fit_lens` tries both on a
+      small photo with depth edges at the cost of one compile). Default `True`.
     """
 
     jump: float = eqx.field(static=True)
     fill: bool = eqx.field(static=True)
+    occlude: bool | Bool[Array, ""]
 
     differentiable_in_radius: ClassVar[bool] = True
     uses_depth: ClassVar[bool] = True
 
-    def __init__(self, *, jump: float = DEFAULT_JUMP, fill: bool = True):
+    def __init__(
+        self, *, jump: float = DEFAULT_JUMP, fill: bool = True, occlude: bool | Array = True
+    ):
         if isinstance(jump, bool) or not isinstance(jump, (int, float)) or not 0 < jump <= 1:
             raise ValueError(f"jump must be a number in (0, 1], got {jump!r}")
         self.jump = float(jump)
         self.fill = check_bool("fill", fill)
+        if isinstance(occlude, bool):
+            self.occlude = occlude
+        else:  # a scalar boolean array (traced or not): chosen at run time
+            arr = occlude if isinstance(occlude, jax.Array) else np.asarray(occlude)
+            if arr.shape != () or arr.dtype != bool:
+                raise ValueError(
+                    f"occlude must be a bool or a scalar boolean array, got {occlude!r}"
+                )
+            self.occlude = jnp.asarray(arr)
 
     def spread(self, image, radius, *, max_radius, depth):
         if depth is None:
@@ -326,5 +350,11 @@ class LocalOcclusion(AbstractMethod):
 
             return soft_filter(image, radius, max_radius=max_radius)
         return local_occlusion_filter(
-            image, radius, max_radius=max_radius, depth=depth, jump=self.jump, fill=self.fill
+            image,
+            radius,
+            max_radius=max_radius,
+            depth=depth,
+            jump=self.jump,
+            fill=self.fill,
+            occlude=self.occlude,
         )

@@ -55,7 +55,7 @@ from .select import (
 from .solve import degenerate_at, finish, nuisance_scores, run_stage
 from .strategies import _check_pyramid, auto_levels, check_border, start_lenses, window_of
 from .tiles import fits_tiles, given_tiles, tile_boxes, use_tiles
-from .treatment import check_edge_weight, treat_scene
+from .treatment import check_edge_weight, shared_render, treat_scene
 from .verdict import failed, tiles_note, verdict
 
 
@@ -192,6 +192,9 @@ def fit_lens(
     call["nuisances"] = canonical(k for k, v in asked.items() if v)
     call["test"] = canonical(k for k, v in asked.items() if v is None)
     call["luma"], luma_entry = _choose_luma(image, targets, luma)
+    # The render is the fit's to choose (the photo's say refits with another): on a small photo
+    # the soft and occlusion renders then share one compiled solve (`treatment.shared_render`).
+    call["own_render"] = model is None and method is None
     coarse = np.shape(depth)
     if len(coarse) == 2 and np.ndim(image) in (2, 3) and coarse != np.shape(image)[:2]:
         # A depth sensor coarser than the image: upsampled once, guided by the image.
@@ -363,7 +366,7 @@ def _fit_once(call: dict) -> FitResult | dict:
 def _set_up(
     image, depth, targets, init, *, free, shared, solver, max_steps, weight, max_radius,
     nuisances, luma, starts, verbose, model, method, footprint, pyramid, downsample, border,
-    tiles, edge_weight, registration_reach=None, hole_reach=None, **_,
+    tiles, edge_weight, registration_reach=None, hole_reach=None, own_render=False, **_,
 ):  # fmt: skip
     """`_fit_treated`'s checked problem and plan: `(run, treatment, rows0, window, budget,
     levels)`, the starts `rows0`, the window, the tiles' pixel budget (`None`: the whole frame)
@@ -386,6 +389,8 @@ def _set_up(
     rows0 = start_lenses(p.b, p.d, free=free, starts=n_starts, fcap=p.fcap)
     fixed = None if max_radius is None else float(max_radius)
     window = window_of(forward, rows0, p.d, p.photo, fixed=fixed)
+    if own_render:
+        forward = shared_render(forward, p, window)
     # The photo pixels that a depth hole's light reaches: the init lens's circles and the
     # border's stencils (the border band of their window; the starts' window can be far
     # larger: starts spread in diopters make large circles).

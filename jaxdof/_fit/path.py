@@ -26,6 +26,7 @@ from .residual import _Model
 from .solve import default_solver, fit_starts, restate, run_stage, stage_note
 from .strategies import (
     _COARSE_TOL,
+    COMPILE_WORK,
     _next_starts,
     apply_border,
     distinct,
@@ -196,19 +197,11 @@ def _search_on_every_pixel(run: Run, window: float, y0s):
     return np.where(np.isfinite(info["ys"]), info["ys"], y0s).astype(np.asarray(y0s).dtype)
 
 
-# A refit at a smaller window recompiles the full-resolution solve (seconds) to save taps per
-# render: only worth it where the taps saved per render, over every pixel of every target, exceed
-# this (tap-pixels). A render gathers roughly 1e8-1e9 tap-pixels per second on one core (an
-# estimate) and a solve takes tens of renders, so below it the saving is under a second, while
-# the compile of the 40 x 56 test scenes' solve took 6-12 s (XLA level 0, 2 cores).
-_RESTENCIL_WORK = 3e7
-
-
 def _kept_stencil(run: Run, window: float, smaller: float) -> Run:
     """`run` compiled at `window` for a refit at `smaller` (`Run.stencil`), where the taps the
-    smaller window saves are too few to pay for a compile (`_RESTENCIL_WORK`); else `run`."""
+    smaller window saves are too few to pay for a compile (`COMPILE_WORK`); else `run`."""
     saved = len(tap_offsets(window)) - len(tap_offsets(smaller))
-    if run.problem.args[2].size * saved > _RESTENCIL_WORK:
+    if run.problem.args[2].size * saved > COMPILE_WORK:
         return run
     return dataclasses.replace(run, stencil=max(window, run.stencil))
 

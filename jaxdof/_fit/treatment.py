@@ -20,7 +20,8 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .._filters import as_method
+from .._filters import LocalOcclusion, as_method
+from .._filters.common import tap_offsets
 from .._scene import (
     EDGE_KEEP_MIN as EDGE_KEEP_MIN,
     EDGE_MIN_SHARE as EDGE_MIN_SHARE,
@@ -32,6 +33,7 @@ from .._scene import (
 )
 from .forward import AbstractForwardModel, DefocusModel
 from .prepare import Problem, scene_edges
+from .strategies import COMPILE_WORK
 
 
 def check_edge_weight(edge_weight) -> None:
@@ -103,3 +105,19 @@ def treat_scene(
             )
         p = dataclasses.replace(p, sqrt_w=sqrt_w)
     return p, forward, treatment
+
+
+def shared_render(forward: AbstractForwardModel, p, window: float) -> AbstractForwardModel:
+    """The soft or occlusion render the fit chose as one `LocalOcclusion` with its occlusion
+    on or off at run time (`occlude`; off it is the soft filter bit for bit), where the scene
+    has depth edges (the photo's say then fits both) and the photo is small: its extra work per
+    render (the occlusion sums cost 1-2 soft filters more) under `strategies.COMPILE_WORK`, so the
+    compile it saves (seconds) is the larger. Otherwise `forward` as it is."""
+    method = forward.method if isinstance(forward, DefocusModel) else None
+    if not (isinstance(method, str) and method in ("soft", OCCLUSION_METHOD)):
+        return forward
+    work = p.args[2].size * len(tap_offsets(window))
+    if work > COMPILE_WORK or not scene_edges(p.depth).any():
+        return forward
+    occlude = jnp.asarray(method == OCCLUSION_METHOD)
+    return dataclasses.replace(forward, method=LocalOcclusion(occlude=occlude))
