@@ -82,10 +82,12 @@ by the method of least squares", Phys. Rev. 40 (1932) 207-227.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 import jax.scipy.special as jsp
 import numpy as np
@@ -445,6 +447,26 @@ def adequacy(
     square), `spread` (the tile-spread factor whether or not the test fires, for diagnostics),
     `adequate` (`p_value >= alpha`, or too few degrees of freedom to test).
     """
+    return _adequacy(
+        residual,
+        jac,
+        mask,
+        extra,
+        sigma2,
+        noise_floor,
+        shape=tuple(int(k) for k in shape),
+        used=None if used is None else tuple(int(k) for k in used),
+        grid=None if grid is None else (int(grid[0]), int(grid[1])),
+        band=int(band),
+        alpha=float(alpha),
+    )
+
+
+# One compiled program per layout: called eagerly (a study, a test, a user's own check), the
+# statistic's Jacobi loops and tile sums would otherwise be dispatched and compiled op by op
+# (16 x 16 px, 3 columns: 32 s cold and 4.7 s every later call, against 7 s once).
+@functools.partial(jax.jit, static_argnames=("shape", "used", "grid", "band", "alpha"))
+def _adequacy(residual, jac, mask, extra, sigma2, noise_floor, *, shape, used, grid, band, alpha):
     one = jnp.ones((), residual.dtype)
     data = _tiled(residual, jac, shape, mask, used, extra, grid, band)
     if data is None:  # nothing free: nothing to test
