@@ -6,8 +6,9 @@ import pathlib
 # The default run is compile-bound (hundreds of small programs, each run a few times): XLA's
 # backend at optimisation level 0 compiles them faster. The default run on 2 cores: 402 s, 336 s
 # with the compilation cache below, 266 s with both (all passing). Set before JAX starts its
-# backend; an XLA_FLAGS already set is kept (.ci/run's slow run sets it empty, so that the
-# default level, which users run, is tested too).
+# backend; an XLA_FLAGS already set is kept (.ci/run's last step sets it empty, so that the
+# default level, which users run, is tested too). The slow run compiles at level 0 as well: it
+# reuses the default run's programs from the cache below.
 os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
 
 import jax  # noqa: E402
@@ -68,19 +69,33 @@ def _release_compiled_code():
     release_compiled_code(max_maps=20_000)
 
 
+def _listed(name: str) -> frozenset[str]:
+    """The test ids of a list beside this file: file::function (every parametrisation) or
+    file::function[id], one per line; `#` starts a comment line."""
+    text = (pathlib.Path(__file__).parent / name).read_text()
+    return frozenset(t.strip() for t in text.splitlines() if t.strip() and not t.startswith("#"))
+
+
 # The `slow` marker, from one list (tests/slow_tests.txt: file::function, with its provenance).
-_SLOW = frozenset(
-    line.strip()
-    for line in (pathlib.Path(__file__).parent / "slow_tests.txt").read_text().splitlines()
-    if line.strip() and not line.startswith("#")
-)
+_SLOW = _listed("slow_tests.txt")
+
+
+
+
+# The `extended` marker (also `slow`): long validations that CI's 90 minutes leave out, run by
+# hand with `-m extended` (tests/extended_tests.txt says why each is out and what in CI covers it).
+_EXTENDED = _listed("extended_tests.txt")
 
 
 @pytest.hookimpl(tryfirst=True)  # before `-m` deselects by marker
 def pytest_collection_modifyitems(items):
     for item in items:
-        if item.nodeid.split("[")[0] in _SLOW:
+        function = item.nodeid.split("[")[0]
+        if function in _SLOW:
             item.add_marker(pytest.mark.slow)
+        if function in _EXTENDED or item.nodeid in _EXTENDED:
+            item.add_marker(pytest.mark.slow)
+            item.add_marker(pytest.mark.extended)
 
 
 # Each test's duration as it ends, appended to the file named by JAXDOF_TEST_TIMES (tab-separated:

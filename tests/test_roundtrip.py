@@ -100,7 +100,9 @@ def test_default_fit_recovers_every_render(model, kind, n, d_f, dtype):
     _round_trip(model, kind, n, d_f, dtype)
 
 
-@_settings(6)
+# Three draws (six took 685 s of the slow run): the circles' extremes are the default run's
+# property over a wider range, not a new path per draw.
+@_settings(3)
 @given(
     model=st.sampled_from(sorted(MODELS)),
     kind=st.sampled_from(["ramp", "step"]),
