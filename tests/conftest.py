@@ -80,8 +80,6 @@ def _listed(name: str) -> frozenset[str]:
 _SLOW = _listed("slow_tests.txt")
 
 
-
-
 # The `extended` marker (also `slow`): long validations that CI's 90 minutes leave out, run by
 # hand with `-m extended` (tests/extended_tests.txt says why each is out and what in CI covers it).
 _EXTENDED = _listed("extended_tests.txt")
