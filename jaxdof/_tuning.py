@@ -300,7 +300,12 @@ TABLE_LEVELS_PER_PIXEL = 1 / 8
 #: R = 15, `jaxdof render` sampled at each stage: bands of 1701 rows 1208 MB over the process
 #: when the render started, so with the 6 MP intercept (366 MB) `band_fixed` about 290 MB and
 #: `band_frame` 13 per frame pixel (the RGB output's 12); bands of 1334 rows 1346 MB, which with
-#: those leaves 92 per band pixel (0.68 of the whole frame's): soft's `band_scale` is 0.75. `soft` below `SPANS_MIN_RADIUS` is the
+#: those leaves 92 per band pixel (0.68 of the whole frame's): soft's `band_scale` is 0.75.
+#: Re-measured 2026-12-07 (`tests/test_bands.py`'s measurement, VmHWM, soft, bands of 100 rows, at
+#: 1.5 / 3 / 6 / 12 MP, R = 9.5 / 9.5 / 19 / 19): 171 / 185 / 285 / 372 MB, an intercept of about
+#: 130 MB over the band's work and the frame's share; with `band_fixed` 300 MB the 1.5 and 3 MP
+#: peaks were half the estimate. At 200 MB: 0.70-0.88 of it, and the 24 MP bands above 0.73 and
+#: 0.95 of it (still under). `soft` below `SPANS_MIN_RADIUS` is the
 #: dense gather, `soft_spans` from there on (R = 48 and 96 measured); `auto` is the largest of its
 #: choices (soft, layered); `other` (a method of your own) the largest of the table.
 RENDER_MEMORY = {
@@ -320,7 +325,7 @@ RENDER_MEMORY = {
     "footprint": 350.0,
     "fixed": 200 * 2**20,
     "band_scale": {"soft": 0.75, "layered": 0.8, "aperture": 0.85, "other": 1.0},
-    "band_fixed": 300 * 2**20,
+    "band_fixed": 200 * 2**20,
     "band_frame": 16.0,
 }
 
