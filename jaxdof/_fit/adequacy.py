@@ -416,8 +416,9 @@ def adequacy(
     """Test whether one lens explains every tile of the photos; the honest inflation if not.
 
     See the module docstring for the statistic, its distribution and the sources. A pure
-    function of arrays: `jit` it with `shape`, `used`, `grid`, `band` and `alpha` static (Python
-    values; whether `extra`, `mask` and `sigma2` are given is structure too), `vmap` it over fits.
+    function of arrays, compiled once per layout (`shape`, `used`, `grid`, `band` and `alpha` are
+    static Python values; whether `extra`, `mask` and `sigma2` are given is structure too); it
+    composes with `jit` and `vmap` (over fits).
 
     **Arguments:**
 
