@@ -133,23 +133,9 @@ def race(
 
     def body(carry):
         ys, dynamic, result, running, stopped, steps, history, t = carry
-
-        # One step of start `s` where it is still running, one start at a time: a start that
-        # has stopped costs nothing (a vmapped step computes every start, converged or not, as
-        # long as the slowest one runs).
-        def advance(s, c):
-            def go(c):
-                ys, dynamic, done, result = c
-                state = eqx.combine(jax.tree_util.tree_map(lambda x: x[s], dynamic), static)
-                y, state, d, r = step(ys[s], state)
-                new = (y, eqx.partition(state, eqx.is_array)[0], d, r)
-                return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), c, new)
-
-            return jax.lax.cond(running[s], go, lambda c: c, c)
-
         done = jnp.zeros(n_starts, bool)
         ys, dynamic, done, result = jax.lax.fori_loop(
-            0, n_starts, advance, (ys, dynamic, done, result)
+            0, n_starts, _one_at_a_time(step, static, running), (ys, dynamic, done, result)
         )
         steps = steps + running.astype(steps.dtype)
         t = t + 1
@@ -172,6 +158,24 @@ def race(
     )(out_of_steps, result)
     post = lambda y, st, r: solver.postprocess(fn, y, None, args, options, st, tags, r)[0]
     return eqx.filter_vmap(post)(ys, state, result), result, steps, state, stopped
+
+
+def _one_at_a_time(step, static, running):
+    """The `fori_loop` body that steps start `s` where it is still running, one start at a time:
+    a start that has stopped costs nothing (a vmapped step computes every start, converged or
+    not, as long as the slowest one runs). The carry is `(ys, dynamic states, done, result)`."""
+
+    def advance(s, c):
+        def go(c):
+            ys, dynamic, _, _ = c
+            state = eqx.combine(jax.tree_util.tree_map(lambda x: x[s], dynamic), static)
+            y, state, d, r = step(ys[s], state)
+            new = (y, eqx.partition(state, eqx.is_array)[0], d, r)
+            return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), c, new)
+
+        return jax.lax.cond(running[s], go, lambda c: c, c)
+
+    return advance
 
 
 def _accepted_loss(state) -> Float[Array, " S"]:
