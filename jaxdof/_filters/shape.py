@@ -14,6 +14,7 @@ kernel), and an area-preserving map from the unit square to the aperture (for le
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import jax.numpy as jnp
 import numpy as np
@@ -40,6 +41,17 @@ def area_factor(blades: int | None) -> float:
 def _lead(values: np.ndarray, like: Array) -> Array:
     """Static per-edge values `(b,)` as `(b, 1, ..., 1)` in `like`'s dtype, to broadcast against it."""
     return jnp.asarray(values, like.dtype).reshape((-1,) + (1,) * like.ndim)
+
+
+def _extreme(values: Array, arg: Callable[..., Array]) -> Array:
+    """The min (`arg=jnp.argmin`) or max (`jnp.argmax`) of `values` over the leading axis.
+
+    Not `jnp.min`/`jnp.max`: their tangent divides by the count of elements equal to the result,
+    recomputed in another kernel, and compiled at XLA's optimisation level 0 the two kernels can
+    round `values` differently (one contracts a multiply-add into an FMA): the count is then 0 and
+    the tangent inf or NaN. The element picked here carries its own tangent, with no count.
+    """
+    return jnp.take_along_axis(values, arg(values, axis=0)[None], axis=0)[0]
 
 
 def row_extent(y: Array, r: Array, blades: int | None, rotation: float) -> tuple[Array, Array]:
@@ -121,8 +133,8 @@ def polygon_pixel_overlap(ox: Array, oy: Array, r: Array, blades: int, rotation:
         same = normals @ np.asarray(edge_normals[k]) > 0
         keep = jnp.where(_lead(same, r) > 0, c0 < -tol[None], c0 <= 0)
         t = -c0 / _lead(np.where(par, 1.0, d), r)
-        hi_k = jnp.min(jnp.where(_lead(~par & (d > 0), r) > 0, t, 1), axis=0)
-        lo_k = jnp.max(jnp.where(_lead(~par & (d < 0), r) > 0, t, 0), axis=0)
+        hi_k = _extreme(jnp.where(_lead(~par & (d > 0), r) > 0, t, 1), jnp.argmin)
+        lo_k = _extreme(jnp.where(_lead(~par & (d < 0), r) > 0, t, 0), jnp.argmax)
         alive = jnp.all(jnp.where(_lead(par, r) > 0, keep, True), axis=0)
         hi_k = jnp.where(alive, jnp.minimum(hi_k, 1), 0)
         lo_k = jnp.maximum(lo_k, 0)
