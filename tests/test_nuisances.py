@@ -4,6 +4,7 @@ each fitted by default only where a score test at the fit without it rejects; re
 `FitResult.nuisances`; forced on or off; their residual's gradients checked. And the luma
 comparison of a camera JPEG, chosen from the photo's colour detail."""
 
+import logging
 import math
 
 import jax
@@ -41,10 +42,17 @@ def _held(*but: str) -> dict:
     return dict(held, method="soft", footprint=False)
 
 
-def test_exposure_is_fitted_where_the_photo_needs_it():
+def test_exposure_is_fitted_where_the_photo_needs_it(caplog):
     """A photo at 0.85 of the render's exposure (with 1 % noise): the score test rejects (p
-    under 1e-3), the gain is fitted and the lens is right."""
-    _exposure_case(0.85)
+    under 1e-3), the gain is fitted and the lens is right. The refits with the gain (one start
+    from the lens found, then the photo's say from the caller's starts) share one compiled solve
+    (`path.padded_starts`, `path.compiled_windows`): at most one per free set is traced."""
+    with caplog.at_level(logging.DEBUG, logger="jax._src.dispatch"):
+        _exposure_case(0.85)
+    messages = [r.getMessage() for r in caplog.records]
+    traced = [m.split()[2] for m in messages if m.startswith("Finished tracing")]
+    traced = [t for t in traced if t == "fit_starts"]
+    assert len(traced) <= 2, traced
 
 
 def test_no_exposure_where_the_photo_has_the_renders():

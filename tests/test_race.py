@@ -85,3 +85,22 @@ def test_tie_margin_is_two_sigma_squared_per_parameter():
     lowest, n, p = 3.0, 103.0, 3
     sigma2 = 2 * lowest / (n - p)
     np.testing.assert_allclose(float(tie_margin(lowest, n, p, 0.5)), 2 * sigma2 * p + 0.5)
+
+
+def test_padding_rows_are_never_evaluated_and_change_nothing():
+    """A batch padded to a compiled size (`live`, `path.padded_starts`): the padding rows are not
+    stepped (0 steps, diverged, never stopped) and cannot stop a start; the starts come out as
+    the unpadded race's, bit for bit."""
+    y0s = jnp.array([[3.0], [6.0], [0.7]])
+    padded = jnp.concatenate([y0s, jnp.repeat(y0s[:1], 5, axis=0)])
+    live = jnp.arange(8) < 3
+    ys, result, steps, _, stopped = race(model, SOLVER, y0s, None, MAX_STEPS, _tie())
+    ys_p, result_p, steps_p, _, stopped_p = race(
+        model, SOLVER, padded, None, MAX_STEPS, _tie(), live=live
+    )
+    np.testing.assert_array_equal(np.asarray(ys_p[:3]), np.asarray(ys))
+    codes, codes_p = np.asarray(result._value), np.asarray(result_p._value)
+    np.testing.assert_array_equal(codes_p[:3], codes)
+    np.testing.assert_array_equal(np.asarray(steps_p), [*np.asarray(steps), 0, 0, 0, 0, 0])
+    np.testing.assert_array_equal(np.asarray(stopped_p), [*np.asarray(stopped), *[False] * 5])
+    assert np.all(np.asarray(result_p == optx.RESULTS.nonlinear_divergence)[3:])

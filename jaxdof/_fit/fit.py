@@ -27,7 +27,7 @@ from .._lens import ThinLens
 from .._upsample import upsample_depth
 from .forward import AbstractForwardModel
 from .layout import pack
-from .path import Run, coarse_solve, full_resolution, solvers
+from .path import Run, coarse_solve, compiled_windows, full_resolution, solvers
 from .photo import _LANCZOS, FRAMED, NUISANCES, canonical, chroma_detail, half_diagonal
 from .prepare import (
     _check_names,
@@ -201,7 +201,9 @@ def fit_lens(
         call["depth"] = upsample_depth(np.asarray(depth), np.asarray(image))
     else:
         coarse = ()
-    with prepared_once():  # the refits below prepare the same arrays: once
+    # The refits below prepare the same arrays once, and reuse the compiled residual of a larger
+    # window where that is cheap.
+    with prepared_once(), compiled_windows():
         result = _fit_treated(**call)
         # The photo's say in the treatment (`select.py`): each choice of the scene's changed in
         # turn, kept only where the photo prefers it ...

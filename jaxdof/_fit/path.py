@@ -9,8 +9,10 @@ and the border band as data.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
 import jax
 import jax.numpy as jnp
@@ -57,6 +59,11 @@ from .verbose import _with_verbose
 _NEAR_INFINITY = 1e-3
 
 
+# The starts a fit's solves are padded to (`padded_starts`): the default fit's (the init and
+# three spread in diopters), so its one-start refits reuse its compiled solve.
+STARTS_COMPILED = 4
+
+
 # The scout's step limit (fits on tiles): its best start converged in 8 steps on the fullres
 # study's 1.5 MP scene, while a start that wandered off crawled for 97 (as many as it is given).
 _SCOUT_MAX_STEPS = 30
@@ -83,16 +90,15 @@ class Run:
     stencil: float = 0.0
 
     def residual(self, window: float) -> _Model:
-        """The residual function with a given filter window (compiled with `stencil` where that
-        is larger: exact either way, the taps past a circle's reach adding 0)."""
-        spec = self.problem.spec
+        """The residual function with a given filter window (compiled with `stencil`, or a
+        larger window this `fit_lens` call has compiled, where that is larger: exact either way,
+        the taps past a circle's reach adding 0; `_compiled_cover`)."""
+        spec, targets = self.problem.spec, self.problem.args[2]
+        # Any free set: the refits with a nuisance follow the fit without it.
+        key = (jax.tree_util.tree_structure(self.forward), spec.luma, targets.shape)
+        window = _compiled_cover(max(window, self.stencil), key, targets.size)
         return _Model(
-            spec.n_targets,
-            max(window, self.stencil),
-            spec.nuisances,
-            self.forward,
-            len(spec.used),
-            spec.luma,
+            spec.n_targets, window, spec.nuisances, self.forward, len(spec.used), spec.luma
         )
 
     def solve(self, window: float, y0s, args, level: int, solver, max_steps: int | None = None):
@@ -108,9 +114,68 @@ class Run:
         tag = f"level {level} " if self.levels > 1 else ""
         solver = _with_verbose(solver, self.verbose, model, args[-1], tag)
         steps = self.max_steps if max_steps is None else min(max_steps, self.max_steps)
-        solution, info = run_stage("fit_starts", fit_starts, model, solver, y0s, args, steps)
-        # A handful of small arrays, in one go.
-        return model, solution, jax.device_get(info), args, (band, wanted)
+        # (A solver `race` cannot drive solves every row: no padding for it.)
+        raced = isinstance(solver, optx.AbstractLeastSquaresSolver)
+        padded, live = padded_starts(np.asarray(y0s), STARTS_COMPILED if raced else 1)
+        solution, info = run_stage(
+            "fit_starts", fit_starts, model, solver, padded, args, steps, live
+        )
+        # A handful of small arrays, in one go; the starts' rows without the padding.
+        info = jax.device_get(info)
+        n = len(y0s)
+        info.update({k: info[k][:n] for k in _PER_START})
+        return model, solution, info, args, (band, wanted)
+
+
+# `fit_starts`' per-start outputs.
+_PER_START = ("loss", "converged", "theta", "ys", "steps", "stopped")
+
+
+def padded_starts(y0s: np.ndarray, least: int) -> tuple[np.ndarray, np.ndarray]:
+    """`y0s` `(S, P)` padded with copies of its first row to the smallest power of two of at
+    least `least` and `S` rows, and which rows are starts: the solves of one fit (from the
+    caller's starts, one start from a lens found, the window's refit with one more) then share
+    one compiled `fit_starts` per free set. The race never evaluates the padding, so a one-start
+    refit costs what it did, less its compile."""
+    n = y0s.shape[0]
+    size = max(least, 1 << max(n - 1, 0).bit_length())
+    live = np.arange(size) < n
+    return np.concatenate([y0s, np.repeat(y0s[:1], size - n, axis=0)]), live
+
+
+# The filter windows the residual was compiled with in the enclosing `compiled_windows` block (a
+# `fit_lens` call), per forward model and photo shape.
+_COMPILED: contextvars.ContextVar[dict | None] = contextvars.ContextVar(
+    "jaxdof_compiled_windows", default=None
+)
+
+
+@contextlib.contextmanager
+def compiled_windows() -> Iterator[None]:
+    """Inside the block, a solve reuses the compiled residual of a larger window where the taps
+    that costs are too few to pay for a compile (`_compiled_cover`): a `fit_lens` call's refits
+    from the lens it found (the photo's say, the nuisances) need smaller windows than its starts
+    did."""
+    token = _COMPILED.set({})
+    try:
+        yield
+    finally:
+        _COMPILED.reset(token)
+
+
+def _compiled_cover(window: float, key: tuple, size: int) -> float:
+    """The smallest window at least `window` that the residual `key` was compiled with inside
+    `compiled_windows` and whose extra taps over `size` data values stay under `COMPILE_WORK`
+    (as `_kept_stencil`), else `window`; recorded as compiled."""
+    seen = _COMPILED.get()
+    if seen is None:
+        return window
+    done = seen.setdefault(key, set())
+    taps = len(tap_offsets(window))
+    cheap = [w for w in done if w >= window and size * (len(tap_offsets(w)) - taps) <= COMPILE_WORK]
+    window = min(cheap, default=window)
+    done.add(window)
+    return window
 
 
 def solvers(solver, dtype, verbose):

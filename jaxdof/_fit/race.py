@@ -44,7 +44,7 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 
 # Steps over which a running start's pace is measured. Long enough to span a few rejected
@@ -95,10 +95,13 @@ def race(
     tie: tuple[Any, Any, Any],
     options: dict | None = None,
     window: int = PACE_WINDOW,
+    live: Bool[Array, " S"] | None = None,
 ):
     """Solve from every start `y0s` in lockstep, stopping a start that cannot catch up (module
     docstring). `model(y, args)` is the residual (`residual._Model`); `tie` is `(n, p, floor)`
-    of `tie_margin`; `options` go to the solver (as `optimistix.least_squares`'s).
+    of `tie_margin`; `options` go to the solver (as `optimistix.least_squares`'s). `live`: the
+    rows of `y0s` that are starts (default every row); the others only pad the batch to a shape
+    compiled once for fits of fewer starts, and are never evaluated (their result: diverged).
 
     Returns `(ys, result, num_steps, states, stopped)`: per start its solution, optimistix result,
     steps taken, final solver state and whether the pace rule stopped it; None where the solver
@@ -118,14 +121,18 @@ def race(
         finite = jnp.all(jnp.isfinite(y))
         return y, state, done, optx.RESULTS.where(finite, result, optx.RESULTS.nonfinite)
 
-    state0 = eqx.filter_vmap(init)(y0s)
+    n_starts = y0s.shape[0]
+    live = jnp.ones(n_starts, bool) if live is None else jnp.asarray(live, bool)
+    dynamic0, static = _initial_states(init, y0s, live)
+    state0 = eqx.combine(dynamic0, static)
     if _accepted_residual(state0) is None:
         return None
     done0, result0 = eqx.filter_vmap(lambda y, s: solver.terminate(fn, y, args, options, s, tags))(
         y0s, state0
     )
-    dynamic0, static = eqx.partition(state0, eqx.is_array)
-    n_starts = y0s.shape[0]
+    result0 = eqx.filter_vmap(
+        lambda m, r: optx.RESULTS.where(m, r, optx.RESULTS.nonlinear_divergence)
+    )(live, result0)
 
     def cond(carry):
         _, _, _, running, _, _, _, t = carry
@@ -158,6 +165,26 @@ def race(
     )(out_of_steps, result)
     post = lambda y, st, r: solver.postprocess(fn, y, None, args, options, st, tags, r)[0]
     return eqx.filter_vmap(post)(ys, state, result), result, steps, state, stopped
+
+
+def _initial_states(init, y0s, live):
+    """The solver's initial state of every live start (`init`, one start at a time), zeros in the
+    padding rows: `(dynamic, static)` as `equinox.partition` splits a batch of states."""
+    struct = eqx.filter_eval_shape(init, y0s[0])
+    is_leaf = lambda x: isinstance(x, jax.ShapeDtypeStruct)  # noqa: E731
+    dynamic, static = eqx.partition(struct, is_leaf)
+    zeros = jax.tree_util.tree_map(
+        lambda x: jnp.zeros((y0s.shape[0], *x.shape), x.dtype), dynamic, is_leaf=is_leaf
+    )
+
+    def one(s, dyn):
+        def go(dyn):
+            new = eqx.partition(init(y0s[s]), eqx.is_array)[0]
+            return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), dyn, new)
+
+        return jax.lax.cond(live[s], go, lambda d: d, dyn)
+
+    return jax.lax.fori_loop(0, y0s.shape[0], one, zeros), static
 
 
 def _one_at_a_time(step, static, running):

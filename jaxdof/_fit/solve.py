@@ -251,7 +251,7 @@ def _pick_best(loss, converged, n, p: int, floor):
 
 
 @eqx.filter_jit
-def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
+def fit_starts(model: _Model, solver, y0s, args, max_steps: int, live=None):
     """`fit_lens`'s solve at one pyramid level as one compiled call, shared by the free/shared
     sets with the same number of free parameters.
 
@@ -263,6 +263,8 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     set) does the statistics. Returns the chosen `solution` (for
     `finish`) and `info`, the few arrays `fit_lens` reads in Python (`best`, per-start `loss`,
     `converged`, `theta`, `ys`, `steps`, `stopped` by the race; `natural` at the best).
+    `live` `(S,)`: the rows of `y0s` that are starts, the others padding (`path.Run.solve`: one
+    compiled solve for fits of up to as many starts); never reported, never the best.
     """
     _, _, targets, sqrt_w, layout = args
     eps = float(jnp.finfo(targets.dtype).eps)  # a Python float: no float32 x float64 mix
@@ -270,7 +272,8 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
     n = _n_residuals(targets, sqrt_w).astype(floor.dtype)
     p = jnp.asarray(layout.live).shape[0]
     y0s_wide = y0s.astype(jnp.result_type(float))  # as in `_solve`
-    raced = race(model, solver, y0s_wide, args, max_steps, (n, p, floor), _options(model, args))
+    tie = (n, p, floor)
+    raced = race(model, solver, y0s_wide, args, max_steps, tie, _options(model, args), live=live)
     if raced is None:
         stopped = jnp.zeros(y0s.shape[0], bool)
         ys, status, num_steps, residual, theta, jacs = eqx.filter_vmap(
@@ -282,8 +285,9 @@ def fit_starts(model: _Model, solver, y0s, args, max_steps: int):
             lambda y, r, k, s: _outcome(model, y.astype(y0s.dtype), r, k, s, args)
         )(ys, result, steps, states)
     loss = 0.5 * jnp.sum(jnp.square(residual.astype(jnp.result_type(float))), axis=-1)
-    loss = jnp.where(jnp.isfinite(loss), loss, jnp.inf)
-    converged = status == RESULTS.successful
+    live = jnp.ones(y0s.shape[0], bool) if live is None else jnp.asarray(live, bool)
+    loss = jnp.where(jnp.isfinite(loss) & live, loss, jnp.inf)
+    converged = (status == RESULTS.successful) & live
     best = _pick_best(loss, converged, n, p, floor)
     y = ys[best]
     jac, g = _jacobians(model, y, args, None if jacs is None else jacs[best])
