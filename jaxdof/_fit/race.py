@@ -122,8 +122,13 @@ def race(
         return y, state, done, optx.RESULTS.where(finite, result, optx.RESULTS.nonfinite)
 
     n_starts = y0s.shape[0]
-    live = jnp.ones(n_starts, bool) if live is None else jnp.asarray(live, bool)
-    dynamic0, static = _initial_states(init, y0s, live)
+    if live is None:  # every row a start: the batch's initial states in one vmapped call
+        dynamic0, static = eqx.partition(eqx.filter_vmap(init)(y0s), eqx.is_array)
+        live, n_live = jnp.ones(n_starts, bool), n_starts
+    else:
+        live = jnp.asarray(live, bool)
+        dynamic0, static = _initial_states(init, y0s, live)
+        n_live = jnp.sum(live)
     state0 = eqx.combine(dynamic0, static)
     if _accepted_residual(state0) is None:
         return None
@@ -142,7 +147,7 @@ def race(
         ys, dynamic, result, running, stopped, steps, history, t = carry
         done = jnp.zeros(n_starts, bool)
         ys, dynamic, done, result = jax.lax.fori_loop(
-            0, n_starts, _one_at_a_time(step, static, running), (ys, dynamic, done, result)
+            0, n_live, _one_at_a_time(step, static, running, live), (ys, dynamic, done, result)
         )
         steps = steps + running.astype(steps.dtype)
         t = t + 1
@@ -167,6 +172,12 @@ def race(
     return eqx.filter_vmap(post)(ys, state, result), result, steps, state, stopped
 
 
+def _live_rows(live) -> tuple[Array, Array]:
+    """The indices of the live rows first (in order), and how many there are: the loops over the
+    starts run over those only, so a padding row costs nothing per step."""
+    return jnp.argsort(~live, stable=True), jnp.sum(live)
+
+
 def _initial_states(init, y0s, live):
     """The solver's initial state of every live start (`init`, one start at a time), zeros in the
     padding rows: `(dynamic, static)` as `equinox.partition` splits a batch of states."""
@@ -176,31 +187,34 @@ def _initial_states(init, y0s, live):
     zeros = jax.tree_util.tree_map(
         lambda x: jnp.zeros((y0s.shape[0], *x.shape), x.dtype), dynamic, is_leaf=is_leaf
     )
+    rows, n_live = _live_rows(live)
 
-    def one(s, dyn):
-        def go(dyn):
-            new = eqx.partition(init(y0s[s]), eqx.is_array)[0]
-            return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), dyn, new)
+    def one(k, dyn):
+        s = rows[k]
+        new = eqx.partition(init(y0s[s]), eqx.is_array)[0]
+        return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), dyn, new)
 
-        return jax.lax.cond(live[s], go, lambda d: d, dyn)
-
-    return jax.lax.fori_loop(0, y0s.shape[0], one, zeros), static
+    return jax.lax.fori_loop(0, n_live, one, zeros), static
 
 
-def _one_at_a_time(step, static, running):
-    """The `fori_loop` body that steps start `s` where it is still running, one start at a time:
-    a start that has stopped costs nothing (a vmapped step computes every start, converged or
-    not, as long as the slowest one runs). The carry is `(ys, dynamic states, done, result)`."""
+def _one_at_a_time(step, static, running, live):
+    """The loop body that steps live start `rows[k]` where it is still running, one start at a
+    time: a start that has stopped costs nothing (a vmapped step computes every start, converged
+    or not, as long as the slowest one runs). The carry is `(ys, dynamic states, done, result)`;
+    the `lax.cond` sees only that start's row, so its cost does not grow with the batch."""
+    rows, _ = _live_rows(live)
 
-    def advance(s, c):
-        def go(c):
-            ys, dynamic, _, _ = c
-            state = eqx.combine(jax.tree_util.tree_map(lambda x: x[s], dynamic), static)
-            y, state, d, r = step(ys[s], state)
-            new = (y, eqx.partition(state, eqx.is_array)[0], d, r)
-            return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), c, new)
+    def advance(k, c):
+        s = rows[k]
+        row = jax.tree_util.tree_map(lambda x: x[s], c)
 
-        return jax.lax.cond(running[s], go, lambda c: c, c)
+        def go(row):
+            y, dynamic, _, _ = row
+            y, state, d, r = step(y, eqx.combine(dynamic, static))
+            return y, eqx.partition(state, eqx.is_array)[0], d, r
+
+        row = jax.lax.cond(running[s], go, lambda row: row, row)
+        return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), c, row)
 
     return advance
 
