@@ -200,21 +200,20 @@ def _initial_states(init, y0s, live):
 def _one_at_a_time(step, static, running, live):
     """The loop body that steps live start `rows[k]` where it is still running, one start at a
     time: a start that has stopped costs nothing (a vmapped step computes every start, converged
-    or not, as long as the slowest one runs). The carry is `(ys, dynamic states, done, result)`;
-    the `lax.cond` sees only that start's row, so its cost does not grow with the batch."""
+    or not, as long as the slowest one runs). The carry is `(ys, dynamic states, done, result)`."""
     rows, _ = _live_rows(live)
 
     def advance(k, c):
         s = rows[k]
-        row = jax.tree_util.tree_map(lambda x: x[s], c)
 
-        def go(row):
-            y, dynamic, _, _ = row
-            y, state, d, r = step(y, eqx.combine(dynamic, static))
-            return y, eqx.partition(state, eqx.is_array)[0], d, r
+        def go(c):
+            ys, dynamic, _, _ = c
+            state = eqx.combine(jax.tree_util.tree_map(lambda x: x[s], dynamic), static)
+            y, state, d, r = step(ys[s], state)
+            new = (y, eqx.partition(state, eqx.is_array)[0], d, r)
+            return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), c, new)
 
-        row = jax.lax.cond(running[s], go, lambda row: row, row)
-        return jax.tree_util.tree_map(lambda x, v: x.at[s].set(v), c, row)
+        return jax.lax.cond(running[s], go, lambda c: c, c)
 
     return advance
 
