@@ -65,8 +65,9 @@ _NEAR_INFINITY = 1e-3
 # share of the solver's state is carried through every step. Measured warm (default XLA level,
 # this 2-core machine, one-start solves): 600 x 600 RGB (1.1e6 values, 5 steps) 1.21-1.36 s
 # unpadded against 1.32-1.47 s padded to 4; the 24 MP photo's tile mosaic (620 x 620 RGB, 4
-# steps) 11.7-13.9 s against 17.3 s; the 40 x 56 test scenes (6.7e3 values) no measurable cost
-# and one compile saved (about 15 s at level 0) per fit that chooses a nuisance.
+# steps; pairs in turns) 18.6 / 10.2 / 11.0 / 11.7 s against 18.8 / 12.0 / 16.3 / 17.3 s; the
+# 40 x 56 test scenes (6.7e3 values) no measurable cost and one compile saved (about 15 s at
+# level 0) per fit that chooses a nuisance.
 STARTS_COMPILED = 4
 PAD_MAX_VALUES = 2**18
 
