@@ -124,13 +124,12 @@ class Run:
         steps = self.max_steps if max_steps is None else min(max_steps, self.max_steps)
         # (A solver `race` cannot drive solves every row: no padding for it.)
         raced = isinstance(solver, optx.AbstractLeastSquaresSolver)
-        live = None  # (the unpadded program: every row a start)
+        n, live = len(y0s), None  # (None: the unpadded program, every row a start)
         if raced and args[2].size <= PAD_MAX_VALUES:
-            y0s, live = padded_starts(np.asarray(y0s), STARTS_COMPILED)
+            y0s, live = padded_starts(np.asarray(y0s))
         solution, info = run_stage("fit_starts", fit_starts, model, solver, y0s, args, steps, live)
         # A handful of small arrays, in one go; the starts' rows without the padding.
         info = jax.device_get(info)
-        n = len(y0s) if live is None else int(live.sum())
         info.update({k: info[k][:n] for k in _PER_START})
         return model, solution, info, args, (band, wanted)
 
@@ -139,14 +138,14 @@ class Run:
 _PER_START = ("loss", "converged", "theta", "ys", "steps", "stopped")
 
 
-def padded_starts(y0s: np.ndarray, least: int) -> tuple[np.ndarray, np.ndarray]:
+def padded_starts(y0s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`y0s` `(S, P)` padded with copies of its first row to the smallest power of two of at
-    least `least` and `S` rows, and which rows are starts: the solves of one fit (from the
+    least `STARTS_COMPILED` and `S` rows, and which rows are starts: the solves of one fit (from the
     caller's starts, one start from a lens found, the window's refit with one more) then share
     one compiled `fit_starts` per free set. The race never evaluates the padding, so a one-start
     refit costs what it did, less its compile."""
     n = y0s.shape[0]
-    size = max(least, 1 << max(n - 1, 0).bit_length())
+    size = max(STARTS_COMPILED, 1 << max(n - 1, 0).bit_length())
     live = np.arange(size) < n
     return np.concatenate([y0s, np.repeat(y0s[:1], size - n, axis=0)]), live
 

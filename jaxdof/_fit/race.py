@@ -124,11 +124,11 @@ def race(
     n_starts = y0s.shape[0]
     if live is None:  # every row a start: the batch's initial states in one vmapped call
         dynamic0, static = eqx.partition(eqx.filter_vmap(init)(y0s), eqx.is_array)
-        live, n_live = jnp.ones(n_starts, bool), n_starts
+        live, rows, n_live = jnp.ones(n_starts, bool), jnp.arange(n_starts), n_starts
     else:
         live = jnp.asarray(live, bool)
-        dynamic0, static = _initial_states(init, y0s, live)
-        n_live = jnp.sum(live)
+        rows, n_live = _live_rows(live)
+        dynamic0, static = _initial_states(init, y0s, rows, n_live)
     state0 = eqx.combine(dynamic0, static)
     if _accepted_residual(state0) is None:
         return None
@@ -147,7 +147,7 @@ def race(
         ys, dynamic, result, running, stopped, steps, history, t = carry
         done = jnp.zeros(n_starts, bool)
         ys, dynamic, done, result = jax.lax.fori_loop(
-            0, n_live, _one_at_a_time(step, static, running, live), (ys, dynamic, done, result)
+            0, n_live, _one_at_a_time(step, static, running, rows), (ys, dynamic, done, result)
         )
         steps = steps + running.astype(steps.dtype)
         t = t + 1
@@ -178,16 +178,16 @@ def _live_rows(live) -> tuple[Array, Array]:
     return jnp.argsort(~live, stable=True), jnp.sum(live)
 
 
-def _initial_states(init, y0s, live):
-    """The solver's initial state of every live start (`init`, one start at a time), zeros in the
-    padding rows: `(dynamic, static)` as `equinox.partition` splits a batch of states."""
+def _initial_states(init, y0s, rows, n_live):
+    """The solver's initial state of every live start (`rows[:n_live]`, `_live_rows`; `init`, one
+    start at a time), zeros in the padding rows: `(dynamic, static)` as `equinox.partition` splits
+    a batch of states."""
     struct = eqx.filter_eval_shape(init, y0s[0])
     is_leaf = lambda x: isinstance(x, jax.ShapeDtypeStruct)  # noqa: E731
     dynamic, static = eqx.partition(struct, is_leaf)
     zeros = jax.tree_util.tree_map(
         lambda x: jnp.zeros((y0s.shape[0], *x.shape), x.dtype), dynamic, is_leaf=is_leaf
     )
-    rows, n_live = _live_rows(live)
 
     def one(k, dyn):
         s = rows[k]
@@ -197,11 +197,11 @@ def _initial_states(init, y0s, live):
     return jax.lax.fori_loop(0, n_live, one, zeros), static
 
 
-def _one_at_a_time(step, static, running, live):
-    """The loop body that steps live start `rows[k]` where it is still running, one start at a
-    time: a start that has stopped costs nothing (a vmapped step computes every start, converged
-    or not, as long as the slowest one runs). The carry is `(ys, dynamic states, done, result)`."""
-    rows, _ = _live_rows(live)
+def _one_at_a_time(step, static, running, rows):
+    """The loop body that steps live start `rows[k]` (`_live_rows`) where it is still running,
+    one start at a time: a start that has stopped costs nothing (a vmapped step computes every
+    start, converged or not, as long as the slowest one runs). The carry is `(ys, dynamic states,
+    done, result)`."""
 
     def advance(k, c):
         s = rows[k]
