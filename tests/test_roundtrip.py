@@ -256,7 +256,8 @@ def test_cli_fit_with_an_8bit_photo_and_a_16bit_depth_png_with_holes(tmp_path):
 def test_cli_fit_with_a_camera_jpeg_and_a_16bit_depth_png_with_holes(tmp_path):
     """A camera JPEG (quality 90, colour at half resolution, 4:2:0) of an 8-bit sRGB image's
     render, with a 16-bit depth PNG holding zeros: `jaxdof fit` reads the JPEG's header, compares
-    the luma (the full-resolution part of the file), exits 0 and finds the lens within 2 %."""
+    the luma (the full-resolution part of the file) in its blocks, exits 0 and finds the lens
+    within 2 %."""
     import imageio.v3 as iio
     from PIL import Image
 
@@ -282,6 +283,7 @@ def test_cli_fit_with_a_camera_jpeg_and_a_16bit_depth_png_with_holes(tmp_path):
     obj = json.loads(out.getvalue())
     assert obj["success"] is True and obj["nuisances"]["luma"]["fitted"] is True
     assert obj["nuisances"]["luma"]["forced"] is True  # from the file's header
+    assert obj["nuisances"]["luma"]["jpeg"]["found"] is True  # in the file's blocks
     fitted = obj["lenses"][0]
     assert abs(fitted["f_number"] / 2.8 - 1) < 0.02, fitted
     assert abs(fitted["focus_distance"] / 2.5 - 1) < 0.02, fitted

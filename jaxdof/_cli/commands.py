@@ -549,6 +549,7 @@ def fit_call(args, display: Display | None = None) -> FitCall:
         edge_weight=args.edge_weight,
         verbose=verbose,
         luma=_luma(args),
+        jpeg=_choice(args.jpeg),
         **{k: _choice(getattr(args, k)) for k in NUISANCES},
         **model,
     )

@@ -505,6 +505,14 @@ def _add_fit_camera(fit) -> None:
         "half-resolution colour, 4:2:0 or 4:2:2, as cameras write; else where a TARGET has lost "
         "the all-in-focus image's colour detail), on or off",
     )
+    fit.add_argument(
+        "--jpeg",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="with the luma, compare a JPEG TARGET in its 8x8 blocks to within half its "
+        "quantisation steps (what the file holds): auto (default: where the decoded photo's "
+        "coefficients lie on a quantisation lattice), on or off",
+    )
 
 
 def _add_fit(sub) -> None:

@@ -21,6 +21,7 @@ import optimistix as optx
 
 from .._filters.common import tap_offsets
 from .forward import AbstractForwardModel
+from .jpeg import JpegGrid
 from .layout import pack, theta_floor
 from .lm import bounded
 from .prepare import Problem
@@ -96,6 +97,7 @@ class Run:
     # The smallest filter window the residual is compiled with (`_kept_stencil`): a refit whose
     # window shrinks reuses the compiled solve of the larger one. 0: the window itself.
     stencil: float = 0.0
+    jpeg: JpegGrid | None = None  # the photos' JPEG blocks and steps (`jpeg.py`), where found
 
     def residual(self, window: float) -> _Model:
         """The residual function with a given filter window (compiled with `stencil`, or a
@@ -103,10 +105,11 @@ class Run:
         the taps past a circle's reach adding 0; `_compiled_cover`)."""
         spec, targets = self.problem.spec, self.problem.args[2]
         # Any free set: the refits with a nuisance follow the fit without it.
-        key = (jax.tree_util.tree_structure(self.forward), spec.luma, targets.shape)
+        key = (jax.tree_util.tree_structure(self.forward), spec.luma, self.jpeg, targets.shape)
         window = _compiled_cover(max(window, self.stencil), key, targets.size)
+        n_used = len(spec.used)
         return _Model(
-            spec.n_targets, window, spec.nuisances, self.forward, len(spec.used), spec.luma
+            spec.n_targets, window, spec.nuisances, self.forward, n_used, spec.luma, self.jpeg
         )
 
     def solve(self, window: float, y0s, args, level: int, solver, max_steps: int | None = None):

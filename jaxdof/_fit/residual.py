@@ -20,6 +20,7 @@ from .._filters.spans import in_jacobian
 from .._lens import ThinLens
 from . import layout as coords
 from .forward import AbstractForwardModel
+from .jpeg import JpegGrid
 from .layout import _Arr, _Layout
 from .photo import camera
 
@@ -40,7 +41,8 @@ class _Model(eqx.Module):
     `y` holds `3 T` lens coordinates, field-major (`y[j T + t]` is field `j` of target `t`:
     `logit(f / fcap)`, `log N`, and the focus `y` with `fcap / (d_f - f) = |y| + 1e-12`, 0 at
     infinity; see `layout.py`), then `T` slots per parameter of each fitted nuisance
-    (`photo.NUISANCES`, in that order). With `luma`, the photos are compared in their sRGB luma.
+    (`photo.NUISANCES`, in that order). With `luma`, the photos are compared in their sRGB luma,
+    and with `jpeg` in its blocks' DCT to within half a quantisation step (`jpeg.JpegGrid`).
     A shared field reads slot `j T` for every target; fixed fields read `base`; unread slots have
     zero Jacobian columns: they are neither differentiated (`n_live`) nor in the statistics.
 
@@ -55,6 +57,9 @@ class _Model(eqx.Module):
     # The number of live slots (`_Layout.live`); None: differentiate every slot.
     n_live: int | None = eqx.field(static=True, default=None)
     luma: bool = eqx.field(static=True, default=False)
+    # A camera JPEG's blocks and steps (`jpeg.py`): the luma compared in the file's terms, on
+    # the photo the grid belongs to (a pyramid level or a tile mosaic: pixel by pixel).
+    jpeg: JpegGrid | None = eqx.field(static=True, default=None)
 
     def natural(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, "t 4"]:
         """Lens fields `(f, N, d_f, pitch)` of every target."""
@@ -127,7 +132,11 @@ class _Model(eqx.Module):
         y_dtype = y.dtype
         y = y.astype(targets.dtype)
         pred = camera(raw, self.nuisance_params(y), self.nuisances, self.luma, layout.frame_vu)
-        r = ((pred - targets) * sqrt_w).reshape(-1)
+        grid = self.jpeg
+        if grid is not None and layout.frame_vu is None and targets.shape[1:3] == grid.shape:
+            r = grid.residual(pred, targets, sqrt_w).reshape(-1)
+        else:
+            r = ((pred - targets) * sqrt_w).reshape(-1)
         return jnp.where(jnp.all(jnp.isfinite(y)), r, jnp.nan).astype(y_dtype)
 
     def live(self, y, args) -> Array:

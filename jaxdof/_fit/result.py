@@ -34,6 +34,11 @@ def nuisance_words(entry: dict) -> str:
         detail = entry["chroma_detail"]
         if not entry.get("forced") and math.isfinite(detail):
             how += f" (chroma detail {detail:.3g} of the luma's)"
+        blocks = entry.get("jpeg") or {}
+        if blocks.get("found"):
+            quality = [q for q in blocks.get("quality") or () if q is not None]
+            of = f", quality {'/'.join(map(str, quality))}" if quality else ""
+            how += f", in its JPEG blocks to within half a step{of}"
     if entry.get("forced"):
         return f"{how} (forced)"
     if entry.get("exact"):
@@ -285,7 +290,9 @@ class FitResult(eqx.Module):
       rejected, by how much fitting it lowered the chi-square in units of the model's error
       (`select.explained`; `chosen`: kept), and `"values"` where fitted (shifts in photo
       pixels); and `"luma"`: whether the photos were compared in their
-      luma, with the colour detail that decided it. `None` from `solve_lens`.
+      luma, with the colour detail that decided it, and `"jpeg"`: whether in their JPEG blocks
+      (`found`, `origin`, `quality`: the IJG quality the table matched). `None` from
+      `solve_lens`.
 
     `message` is the status's message and the notes; `stderr_kind` says what the standard errors
     measure (`"noise"`, or `"tile spread"` when inflated); `lens` is the first target's lens;

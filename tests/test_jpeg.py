@@ -1,0 +1,192 @@
+"""A camera JPEG's luma compared in the file's own terms (`jaxdof/_fit/jpeg.py`, issue 34): the
+quantisation table found from the decoded photo alone (and nothing found in a photo that never
+was a JPEG), the block residual within half a step, its derivatives, and a fit that uses it."""
+
+import io
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+from PIL import Image
+
+import jaxdof
+from jaxdof._fit import jpeg, layout, photo, prepare, residual
+from jaxdof._io import linear_to_srgb, srgb_to_linear
+
+
+def _texture(h, w, seed):
+    """Linear RGB detail at every scale: white noise, box-blurred to several sizes, summed."""
+    rng = np.random.default_rng(seed)
+    x = np.zeros((h, w, 3))
+    for size in (1, 2, 4, 8):
+        n = rng.uniform(size=(h // size + 1, w // size + 1, 3))
+        x += np.repeat(np.repeat(n, size, 0), size, 1)[:h, :w] / 4
+    return (0.05 + 0.8 * x).astype(np.float32)
+
+
+def _encoded(linear, quality=90, subsampling=2):
+    """`linear` as a camera JPEG at `quality` decoded back to linear light, and the file's table."""
+    code = np.round(255 * linear_to_srgb(np.clip(linear, 0, 1))).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(code).save(buf, "JPEG", quality=quality, subsampling=subsampling)
+    buf.seek(0)
+    with Image.open(buf) as im:
+        table = np.asarray(im.quantization[0], np.float64)
+        decoded = np.asarray(im.convert("RGB")).astype(np.float64) / 255
+    return srgb_to_linear(decoded).astype(np.float32), table
+
+
+def _luma(rgb):
+    return np.asarray(photo.luma(jnp.asarray(rgb)))[..., 0]
+
+
+@pytest.mark.parametrize("quality", [50, 75, 90, 95])
+def test_ijg_table_is_the_one_pillow_writes(quality):
+    _, table = _encoded(_texture(16, 16, 0), quality)
+    np.testing.assert_array_equal(jpeg.ijg_table(quality).reshape(-1), table)
+
+
+@pytest.mark.parametrize("quality", [75, 90])
+def test_the_table_and_grid_are_found_from_the_decoded_photo(quality):
+    """A 4:2:0 JPEG of a textured photo: the table (the file's, every entry) and the grid at the
+    origin; a crop of it 3 rows and 5 columns in: the grid at (5, 3)."""
+    decoded, table = _encoded(_texture(96, 128, 1), quality)
+    grid, record = jpeg.estimate(_luma(decoded)[None])
+    assert grid is not None and record["found"] and record["quality"] == [quality], record
+    assert grid.origin == (0, 0) and grid.shape == (96, 128)
+    np.testing.assert_array_equal(grid.tables[0], table)
+    crop, record = jpeg.estimate(_luma(decoded)[None, 3:, 5:])
+    assert crop is not None and crop.origin == (5, 3), record
+    np.testing.assert_array_equal(crop.tables[0], table)
+
+
+def test_no_table_where_the_photo_never_was_a_jpeg():
+    """The false-alarm rate, measured: none of 12 photos that never were JPEGs (linear float, the
+    same rounded to 8-bit sRGB as a PNG holds it, and with 2 % noise) is taken for one; nor a
+    JPEG resized by a factor of 1.5 (its blocks no longer on the grid)."""
+    found = 0
+    for seed in range(4):
+        linear = _texture(48, 64, 10 + seed)
+        png = srgb_to_linear(np.round(255 * linear_to_srgb(linear)) / 255).astype(np.float32)
+        noisy = linear * (1 + 0.02 * np.random.default_rng(seed).normal(size=linear.shape))
+        for x in (linear, png, noisy.astype(np.float32)):
+            found += jpeg.estimate(_luma(x)[None])[0] is not None
+    assert found == 0
+    decoded, _ = _encoded(_texture(96, 96, 2))
+    resized = np.asarray(
+        Image.fromarray(np.round(255 * linear_to_srgb(decoded)).astype(np.uint8)).resize((64, 64))
+    )
+    assert jpeg.estimate(_luma(srgb_to_linear(resized / 255))[None])[0] is None
+
+
+def _grid(shape, steps, origin=(0, 0), t=1):
+    return jpeg.JpegGrid((tuple(map(float, np.ravel(steps))),) * t, origin, shape)
+
+
+def test_block_residual_without_steps_is_the_pixel_residual_in_other_coordinates():
+    """With every step 0 the residual is each block's orthonormal DCT: the same sum of squares as
+    the pixel residual on the whole blocks, and 0 outside them (an origin of (2, 3))."""
+    rng = np.random.default_rng(0)
+    pred, target = rng.uniform(size=(2, 2, 21, 30, 1))
+    grid = _grid((21, 30), np.zeros(64), origin=(2, 3), t=2)
+    r = np.asarray(grid.residual(jnp.asarray(pred), jnp.asarray(target), jnp.ones((1, 21, 30, 1))))
+    inside = (slice(None), slice(2, 18), slice(3, 27))
+    np.testing.assert_allclose(
+        np.sum(r[inside] ** 2), np.sum((pred - target)[inside] ** 2), rtol=1e-12
+    )
+    outside = np.ones(r.shape, bool)
+    outside[inside] = False
+    assert np.all(r[outside] == 0)
+
+
+def test_block_residual_is_zero_within_half_a_step_and_masks_blocks():
+    """A render whose coefficients are within half a step of the photo's has residual 0; one
+    step beyond, half a step is left; a block with one weight-0 pixel is left out."""
+    m = jpeg.dct_matrix()
+    q = jpeg.ijg_table(90).astype(np.float64)
+    rng = np.random.default_rng(1)
+    c_photo = q * np.round(rng.normal(scale=20, size=(8, 8)) / q)
+    within = c_photo + rng.uniform(-0.49, 0.49, size=(8, 8)) * q
+    target = (m.T @ c_photo @ m / 255)[None, :, :, None]
+    pred = (m.T @ within @ m / 255)[None, :, :, None]
+    grid = _grid((8, 8), q)
+    ones = jnp.ones((1, 8, 8, 1))
+    assert np.max(np.abs(grid.residual(jnp.asarray(pred), jnp.asarray(target), ones))) < 1e-12
+    beyond = c_photo.copy()
+    beyond[2, 3] += q[2, 3]
+    pred = (m.T @ beyond @ m / 255)[None, :, :, None]
+    r = np.asarray(grid.residual(jnp.asarray(pred), jnp.asarray(target), ones))[0, :, :, 0]
+    want = np.zeros((8, 8))
+    want[2, 3] = 0.5 * q[2, 3] / 255
+    np.testing.assert_allclose(r, want, atol=1e-12)
+    holed = ones.at[0, 5, 1, 0].set(0.0)
+    assert np.all(np.asarray(grid.residual(jnp.asarray(pred), jnp.asarray(target), holed)) == 0)
+
+
+def test_residual_gradients_with_jpeg_blocks_and_nuisances():
+    """The fit's residual with the luma compared in JPEG blocks (with exposure and registration):
+    float64 finite differences of its derivatives in every coordinate, forward and reverse."""
+    image = _texture(16, 16, 3).astype(np.float64)
+    depth = np.where(np.arange(16) < 8, 1.5, 4.0)[None].repeat(16, 0)
+    lens = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=16)
+    target = 0.9 * np.asarray(jaxdof.render(image, depth, lens)) + 0.02
+    image, depth, targets, sqrt_w, base, _ = prepare._prepare(
+        image, depth, target, lens, None, jaxdof.DefocusModel()
+    )
+    targets, sqrt_w = prepare.luma_targets(targets, sqrt_w)
+    # Steps of 1e-3 levels: the data's coefficients lie outside their dead zones (where a
+    # coefficient is inside, its derivative is 0, which finite differences confirm trivially).
+    grid = _grid((16, 16), np.full(64, 1e-3))
+    every = ("exposure", "registration")
+    spec = layout._Spec(("f_number", "focus_distance"), (), 1, every, luma=True)
+    lay = spec.layout(base, depth)
+    model = residual._Model(
+        1, 4.0, every, jaxdof.DefocusModel(), len(spec.used), luma=True, jpeg=grid
+    )
+    args = (image, depth, targets, sqrt_w, lay)
+    off = np.asarray(base).copy()
+    off[:, 1] *= 1.2
+    r = photo.half_diagonal(16, 16)
+    y = model.pack(jnp.asarray(off), lay).at[3:].set(jnp.asarray([0.95, 0.01, 0.3 / r, 0, 0]))
+    assert np.any(np.asarray(model(y, args)) != 0)
+    check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"), eps=1e-6)
+
+
+def test_a_jpeg_of_a_render_is_fitted_in_its_blocks():
+    """A 4:2:0 JPEG (quality 90) of a render: the fit finds the file's table, compares in its
+    blocks and recovers the lens within 1 %; `jpeg=False` and the file's own table given are
+    honoured and reported."""
+    h, w = 48, 64
+    image = _texture(h, w, 4)
+    x = np.linspace(0.0, 1.0, w)
+    depth = np.where(x < 0.5, 1.2 + x, 3.0 + 2 * x)[None].repeat(h, 0).astype(np.float32)
+    truth = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=w)
+    decoded, table = _encoded(np.asarray(jaxdof.render(image, depth, truth)))
+    init = jaxdof.ThinLens.from_sensor(0.05, 4.0, 2.0, sensor_width=0.0048, image_width=w)
+    held = dict(exposure=False, vignetting=False, illumination=False, registration=False)
+    held.update(method="soft", footprint=False)
+    fit = jaxdof.fit_lens(image, depth, decoded, init, **held)
+    entry = fit.nuisances["luma"]["jpeg"]
+    assert entry["found"] and not entry["forced"] and entry["quality"] == [90], entry
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
+    assert "in its JPEG blocks" in fit.summary(), fit.summary()
+    off = jaxdof.fit_lens(image, depth, decoded, init, jpeg=False, **held)
+    assert not off.nuisances["luma"]["jpeg"]["found"] and off.nuisances["luma"]["jpeg"]["forced"]
+    given = jaxdof.fit_lens(image, depth, decoded, init, jpeg=table, **held)
+    assert given.nuisances["luma"]["jpeg"]["forced"]
+    np.testing.assert_allclose(given.lenses.focus_distance, fit.lenses.focus_distance, rtol=1e-3)
+
+
+def test_jpeg_option_errors_name_the_problem():
+    image = _texture(32, 32, 5)
+    depth = np.full((32, 32), 2.0, np.float32)
+    lens = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=32)
+    with pytest.raises(ValueError, match="64 steps"):
+        jaxdof.fit_lens(image, depth, image, lens, luma=True, jpeg=np.ones(10))
+    with pytest.raises(ValueError, match="no JPEG quantisation lattice"):
+        jaxdof.fit_lens(image, depth, image, lens, luma=True, jpeg=True)
+    with pytest.raises(ValueError, match="luma"):
+        jaxdof.fit_lens(image, depth, image, lens, luma=False, jpeg=True)
