@@ -87,7 +87,7 @@ def _grid(shape, steps, origin=(0, 0), t=1):
 
 def test_block_residual_without_steps_is_the_pixel_residual_in_other_coordinates():
     """With every step 0 the residual is each block's orthonormal DCT: the same sum of squares as
-    the pixel residual on the whole blocks, and 0 outside them (an origin of (2, 3))."""
+    the pixel residual on the whole blocks; outside them (an origin of (2, 3)) the pixels."""
     rng = np.random.default_rng(0)
     pred, target = rng.uniform(size=(2, 2, 21, 30, 1))
     grid = _grid((21, 30), np.zeros(64), origin=(2, 3), t=2)
@@ -98,16 +98,19 @@ def test_block_residual_without_steps_is_the_pixel_residual_in_other_coordinates
     )
     outside = np.ones(r.shape, bool)
     outside[inside] = False
-    assert np.all(r[outside] == 0)
+    np.testing.assert_array_equal(r[outside], (pred - target)[outside])
 
 
-def test_block_residual_is_zero_within_half_a_step_and_masks_blocks():
+def test_block_residual_is_zero_within_half_a_step_and_pixels_where_weights_vary():
     """A render whose coefficients are within half a step of the photo's has residual 0; one
-    step beyond, half a step is left; a block with one weight-0 pixel is left out."""
+    step beyond, half a step is left; a block with a weight-0 pixel (a border, a hole) or
+    weights that ramp (a depth edge) keeps the pixel residual, as does a block the file clipped;
+    even weights scale a block."""
     m = jpeg.dct_matrix()
     q = jpeg.ijg_table(90).astype(np.float64)
     rng = np.random.default_rng(1)
     c_photo = q * np.round(rng.normal(scale=20, size=(8, 8)) / q)
+    c_photo[0, 0] = q[0, 0] * np.round(8 * 128 / q[0, 0])  # a mid-grey block: nothing clipped
     within = c_photo + rng.uniform(-0.49, 0.49, size=(8, 8)) * q
     target = (m.T @ c_photo @ m / 255)[None, :, :, None]
     pred = (m.T @ within @ m / 255)[None, :, :, None]
@@ -117,12 +120,19 @@ def test_block_residual_is_zero_within_half_a_step_and_masks_blocks():
     beyond = c_photo.copy()
     beyond[2, 3] += q[2, 3]
     pred = (m.T @ beyond @ m / 255)[None, :, :, None]
-    r = np.asarray(grid.residual(jnp.asarray(pred), jnp.asarray(target), ones))[0, :, :, 0]
+    r = np.asarray(grid.residual(jnp.asarray(pred), jnp.asarray(target), 0.5 * ones))
     want = np.zeros((8, 8))
-    want[2, 3] = 0.5 * q[2, 3] / 255
-    np.testing.assert_allclose(r, want, atol=1e-12)
+    want[2, 3] = 0.25 * q[2, 3] / 255
+    np.testing.assert_allclose(r[0, :, :, 0], want, atol=1e-12)
     holed = ones.at[0, 5, 1, 0].set(0.0)
-    assert np.all(np.asarray(grid.residual(jnp.asarray(pred), jnp.asarray(target), holed)) == 0)
+    ramp = jnp.broadcast_to(jnp.linspace(0.3, 1.0, 8)[None, None, :, None], (1, 8, 8, 1))
+    for w in (holed, ramp):
+        r = grid.residual(jnp.asarray(pred), jnp.asarray(target), w)
+        np.testing.assert_allclose(np.asarray(r), (pred - target) * np.asarray(w), atol=1e-15)
+    clipped = target.copy()
+    clipped[0, 4, 4, 0] = 1.0
+    r = grid.residual(jnp.asarray(pred), jnp.asarray(clipped), ones)
+    np.testing.assert_allclose(np.asarray(r), pred - clipped, atol=1e-15)
 
 
 def test_residual_gradients_with_jpeg_blocks_and_nuisances():
@@ -150,7 +160,10 @@ def test_residual_gradients_with_jpeg_blocks_and_nuisances():
     off[:, 1] *= 1.2
     r = photo.half_diagonal(16, 16)
     y = model.pack(jnp.asarray(off), lay).at[3:].set(jnp.asarray([0.95, 0.01, 0.3 / r, 0, 0]))
-    assert np.any(np.asarray(model(y, args)) != 0)
+    pixels = residual._Model(1, 4.0, every, jaxdof.DefocusModel(), len(spec.used), luma=True)
+    in_blocks, in_pixels = np.asarray(model(y, args)), np.asarray(pixels(y, args))
+    assert not np.allclose(in_blocks, in_pixels)  # the blocks are compared in their DCT
+    np.testing.assert_allclose(np.sum(in_blocks**2), np.sum(in_pixels**2), rtol=1e-3)
     check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"), eps=1e-6)
 
 

@@ -7,7 +7,7 @@ $$\min_\theta \sum_t \sum_p w_p \left( P_t\big(\mathrm{render}(I, Z, \mathrm{len
 
 over the free lens fields `theta`, `P_t` what the camera adds where the photo needs it (an
 exposure gain and offset, vignetting, a registration per target; the luma of a camera JPEG:
-`photo.py`), with an optimistix least-squares solver (Levenberg-Marquardt by default), from a few
+`photo.py`, compared in its blocks: `jpeg.py`), with an optimistix least-squares solver (Levenberg-Marquardt by default), from a few
 starting points spread over the scene's depth range. It is the only package that imports
 optimistix. `render` is the forward model, `jaxdof.DefocusModel` unless another
 `jaxdof.AbstractForwardModel` is given.
@@ -39,6 +39,8 @@ statistics -> the orchestration's choices):
 - `layout.py`: the parameter layout (`_Spec`, `_Layout`) and the unconstrained coordinates;
 - `forward.py`: the forward models (`AbstractForwardModel`, `DefocusModel`) and `max_circle`;
 - `photo.py`: what the camera adds to the render (exposure, vignetting, registration, luma);
+- `jpeg.py`: a camera JPEG's luma compared in its 8 x 8 blocks to within half a step, and its
+  quantisation table found from the decoded photo;
 - `residual.py`: the residual function (`_Model`) with its Jacobian-materialising JVP rule;
 - `linalg.py`: the small dense decompositions of the statistics (thin SVD, pseudo-inverse);
 - `lm.py`: the default solver, Levenberg-Marquardt that stops at the noise level;

@@ -172,7 +172,10 @@ def _cause(cells: np.ndarray, p) -> str:
     # towards two opposite sides: along one axis rather than towards every corner.
     across = np.broadcast_to(centre**2, (n, n))  # grows towards the left and right sides
     sideways = max(corr(across), corr(across.T))
-    spread = float(np.nanmax(cells) / max(float(np.nanmedian(cells)), np.finfo(float).tiny))
+    # Against the median of the cells with a residual (a camera JPEG's blocks leave cells at 0
+    # where the render encodes to the file's values).
+    some = cells[ok & (cells > 0)]
+    spread = float(np.max(some) / np.median(some)) if some.size else 1.0
     if edgy > _PATTERN and edgy >= radial:
         return (
             f"the residual is largest along depth edges (correlation {edgy:.2f}): likely "
