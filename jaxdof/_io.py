@@ -436,6 +436,31 @@ def chroma_subsampled(path: str) -> bool:
         return False
 
 
+def jpeg_header(path: str) -> dict | None:
+    """A JPEG file's colour sampling (`"4:4:4"`, `"4:2:2"`, `"4:2:0"`, or None for grey or
+    another) and the IJG quality its luma table is (None for a table of the camera's own), from
+    its header; None for another file."""
+    if _suffix(path) not in (".jpg", ".jpeg"):
+        return None
+    from PIL import Image, JpegImagePlugin
+
+    from ._fit.jpeg import ijg_table
+
+    try:
+        with Image.open(path) as im:
+            if not isinstance(im, JpegImagePlugin.JpegImageFile):
+                return None
+            sampling = JpegImagePlugin.get_sampling(im)
+            table = np.asarray(im.quantization.get(0, ()), np.int64)
+    except Exception:  # unreadable: read_image has said so already
+        return None
+    quality = next(
+        (q for q in range(100, 0, -1) if np.array_equal(ijg_table(q).reshape(-1), table)), None
+    )
+    chroma = {0: "4:4:4", 1: "4:2:2", 2: "4:2:0"}.get(sampling)
+    return {"chroma": chroma, "quality": quality}
+
+
 def read_depth(
     path: str,
     *,

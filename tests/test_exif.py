@@ -178,6 +178,24 @@ def test_info_json_reports_the_lens(tmp_path, capsys):
     assert "f-number        1.8" in text and "Phone X1, lens back camera" in text
 
 
+def test_info_reports_a_jpegs_quality_and_colour_sampling(tmp_path, capsys):
+    """`info` on JPEGs: the IJG quality of the luma table and the colour sampling (what `fit`
+    reads from the header), also for a 4:4:4 file and a table of the camera's own."""
+    pixels = np.random.default_rng(0).integers(0, 256, (H, W, 3), dtype=np.uint8)
+    Image.fromarray(pixels).save(tmp_path / "q90.jpg", quality=90, subsampling=2)
+    Image.fromarray(pixels).save(tmp_path / "full.jpg", quality=75, subsampling=0)
+    own = {0: list(range(1, 65)), 1: [50] * 64}
+    Image.fromarray(pixels).save(tmp_path / "own.jpg", qtables=own, subsampling=2)
+    assert _info(tmp_path / "q90.jpg", capsys)["jpeg"] == {"chroma": "4:2:0", "quality": 90}
+    assert _info(tmp_path / "full.jpg", capsys)["jpeg"] == {"chroma": "4:4:4", "quality": 75}
+    assert _info(tmp_path / "own.jpg", capsys)["jpeg"] == {"chroma": "4:2:0", "quality": None}
+    assert main(["info", str(tmp_path / "q90.jpg")]) == 0
+    text = capsys.readouterr().out
+    assert "quality 90, colour 4:2:0: fit compares the luma in its 8 x 8 blocks" in text
+    assert main(["info", str(tmp_path / "own.jpg")]) == 0
+    assert "the camera's own table" in capsys.readouterr().out
+
+
 def test_info_without_exif(tmp_path, capsys):
     """Files without EXIF: `exif` is null; float files are linear, 16-bit PNG 16-bit sRGB, an
     alpha channel is counted (and said to be ignored)."""

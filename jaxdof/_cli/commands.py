@@ -38,6 +38,7 @@ from .._io import (
     _suffix,
     check_output,
     chroma_subsampled,
+    jpeg_header,
     read_depth,
     read_image,
     write_image,
@@ -699,6 +700,7 @@ def describe(path: str) -> dict[str, Any]:
         "encoding": encoding,
         "exif": None,
         **({} if decoded is None else {"raw": decoded}),
+        **({} if (header := jpeg_header(path)) is None else {"jpeg": header}),
     }
     if suffix in EXIF_SUFFIXES:
         try:

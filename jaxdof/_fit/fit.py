@@ -15,7 +15,6 @@ from collections.abc import Callable, Sequence
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import scipy.special
@@ -27,10 +26,10 @@ from .._filters.common import is_concrete
 from .._lens import ThinLens
 from .._upsample import upsample_depth
 from .forward import AbstractForwardModel
-from .jpeg import JpegGrid, estimate, from_table
+from .jpeg import jpeg_grid
 from .layout import pack
 from .path import Run, coarse_solve, compiled_windows, full_resolution, solvers
-from .photo import _LANCZOS, FRAMED, NUISANCES, canonical, chroma_detail, half_diagonal, luma
+from .photo import _LANCZOS, FRAMED, NUISANCES, canonical, chroma_detail, half_diagonal
 from .prepare import (
     _check_names,
     _check_options,
@@ -199,7 +198,7 @@ def fit_lens(
     call["nuisances"] = canonical(k for k, v in asked.items() if v)
     call["test"] = canonical(k for k, v in asked.items() if v is None)
     call["luma"], luma_entry = _choose_luma(image, targets, luma)
-    call["jpeg"], luma_entry["jpeg"] = _choose_jpeg(targets, call["luma"], jpeg)
+    call["jpeg"], luma_entry["jpeg"] = jpeg_grid(targets, call["luma"], jpeg)
     # The render is the fit's to choose (the photo's say refits with another): on a small photo
     # the soft and occlusion renders then share one compiled solve (`treatment.shared_render`).
     call["own_render"] = model is None and method is None
@@ -292,36 +291,6 @@ def _choose_luma(image, targets, luma: bool | None) -> tuple[bool, dict]:
         return bool(luma), {"fitted": bool(luma), "forced": True, "chroma_detail": detail}
     on = bool(colour and detail < _tuning.LUMA_CHROMA)
     return on, {"fitted": on, "forced": False, "chroma_detail": detail}
-
-
-def _choose_jpeg(targets, on: bool, jpeg) -> tuple[JpegGrid | None, dict]:
-    """The photos' JPEG grid (`jpeg.py`) and the decision's record: the caller's table, else
-    estimated from the luma of the photos where it is compared (`None` for `jpeg=False`)."""
-    if isinstance(jpeg, (bool, type(None))) and not jpeg and jpeg is not None:
-        return None, {"found": False, "forced": True}
-    if not on:
-        if jpeg is not None:
-            raise ValueError("jpeg compares the photos' luma: it needs colour photos (luma)")
-        return None, {"found": False, "forced": False}
-    y = np.asarray(luma(jnp.asarray(_stacked(targets))))[..., 0]
-    if jpeg is None or jpeg is True:
-        grid, record = estimate(y)
-        if grid is None and jpeg is True:
-            raise ValueError(
-                "jpeg=True: the photos' luma has no JPEG quantisation lattice (not decoded from a "
-                "JPEG file, or resized since); pass the file's table, or jpeg=None"
-            )
-        return grid, {**record, "forced": jpeg is True}
-    grid = from_table(jpeg, y.shape[0], y.shape[1:3])
-    return grid, {"found": True, "origin": (0, 0), "quality": None, "forced": True}
-
-
-def _stacked(targets) -> np.ndarray:
-    """The targets as one array `(T, *photo)`."""
-    if isinstance(targets, (list, tuple)):
-        return np.stack([np.asarray(t, np.float32) for t in targets])
-    t = np.asarray(targets, np.float32)
-    return t if t.ndim == 4 else t[None]
 
 
 def _fit_treated(**call) -> FitResult:
@@ -453,9 +422,8 @@ def _set_up(
         # coarse levels would only add work: measured 0.5-0.7x the full-resolution fit's speed
         # (fits/recover.py).
         levels = 1
-    run = Run(
-        p, forward, solver, coarse_solver, verbose, max_steps, fixed, 1, band, boxes=boxes, jpeg=jpeg
-    )
+    run = Run(p, forward, solver, coarse_solver, verbose, max_steps, fixed, 1, band)
+    run = dataclasses.replace(run, boxes=boxes, jpeg=jpeg)
     if "registration" in p.spec.nuisances and budget is not None:
         raise ValueError(
             "registration is fitted on the whole frame (it resamples the photo, reading pixels "

@@ -46,6 +46,8 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
+from .photo import luma
+
 
 #: The standard luminance table (ITU-T T.81 Annex K.1), scaled by the quality as the IJG library
 #: (and Pillow, and most cameras' firmware) scales it.
@@ -243,3 +245,34 @@ def from_table(table, t: int, shape: tuple[int, int]) -> JpegGrid:
             f"(row-major, e.g. PIL's Image.quantization[0]); got {q.size} values"
         )
     return JpegGrid((tuple(map(float, q)),) * t, (0, 0), shape)
+
+
+def jpeg_grid(targets, on: bool, jpeg) -> tuple[JpegGrid | None, dict]:
+    """`fit_lens`'s `jpeg`: the photos' grid and the decision's record, for photos compared in
+    their luma (`on`): the caller's table, else `estimate`d (`None` for `jpeg=False`, and for
+    photos not compared in their luma, which a `jpeg` other than `None` refuses)."""
+    if jpeg is False:
+        return None, {"found": False, "forced": True}
+    if not on:
+        if jpeg is not None:
+            raise ValueError("jpeg compares the photos' luma: it needs colour photos (luma)")
+        return None, {"found": False, "forced": False}
+    y = np.asarray(luma(jnp.asarray(_stacked(targets))))[..., 0]
+    if jpeg is None or jpeg is True:
+        grid, record = estimate(y)
+        if grid is None and jpeg is True:
+            raise ValueError(
+                "jpeg=True: the photos' luma has no JPEG quantisation lattice (not decoded from a "
+                "JPEG file, or resized since); pass the file's table, or jpeg=None"
+            )
+        return grid, {**record, "forced": jpeg is True}
+    grid = from_table(jpeg, y.shape[0], y.shape[1:3])
+    return grid, {"found": True, "origin": (0, 0), "quality": None, "forced": True}
+
+
+def _stacked(targets) -> np.ndarray:
+    """The targets as one array `(T, *photo)`."""
+    if isinstance(targets, (list, tuple)):
+        return np.stack([np.asarray(t, np.float32) for t in targets])
+    t = np.asarray(targets, np.float32)
+    return t if t.ndim == 4 else t[None]
