@@ -193,7 +193,9 @@ def print_info(info: dict, *, as_json: bool) -> None:
         j = info["jpeg"]
         table = "the camera's own table" if j["quality"] is None else f"quality {j['quality']}"
         if j["chroma"] in ("4:2:0", "4:2:2"):  # what `fit --luma auto` reads from the header
-            how = f"colour {j['chroma']}: fit compares the luma in its 8 x 8 blocks (--luma, --jpeg)"
+            how = (
+                f"colour {j['chroma']}: fit compares the luma in its 8 x 8 blocks (--luma, --jpeg)"
+            )
         else:
             how = "grey" if j["chroma"] is None else f"colour {j['chroma']} (full resolution)"
         print(f"  {'JPEG':16s}{table}, {how}")
