@@ -85,8 +85,9 @@ def main(args) -> None:
         "# A camera JPEG compared in its blocks (issue 34)",
         "",
         f"Produced by `{cmd}` (the docstring gives the question and the method) at {git}.",
-        "Focus and K errors of the default call's lens (within: focus 2 %, K 5 %); `ok` is "
-        "`success`; `blocks` whether the fit found the file's table and compared in its blocks.",
+        "Focus and K errors of the default call's lens (within: focus 2 %, K 5 %); `blocks`: "
+        "whether the fit found the file's table and compared in its blocks; `s`: the fit's wall "
+        "time, not a timing (other work shared the machine).",
         "",
         "| scene | half | call | focus err | K err | within | success | blocks | s |",
         "|---|---|---|---|---|---|---|---|---|",

@@ -46,7 +46,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
-from .photo import luma
+from .photo import _LUMA, _srgb
 
 
 #: The standard luminance table (ITU-T T.81 Annex K.1), scaled by the quality as the IJG library
@@ -71,7 +71,7 @@ _MAX_STEP = 128
 _MIN_COUNT = 16
 _COHERENCE = 0.5
 _MIN_ENTRIES = 8
-_MAX_BLOCKS = 4096
+_MAX_BLOCKS = 2048
 # Luma levels within which a block's pixels count as clipped (0 or 255): clipping moves a block
 # off the lattice.
 _CLIP_MARGIN = 1.0
@@ -149,19 +149,22 @@ class JpegGrid:
         return diff * sw
 
 
-def _coefficients(y: np.ndarray, origin: tuple[int, int], keep: int | None = None) -> np.ndarray:
-    """The block DCT coefficients `(n, 64)` (row-major `uv`) of the luma `y` `(T, H, W)` (0-255)
-    on the grid at `origin`, without blocks that touch 0 or 255 (clipped: off the lattice);
-    at most `keep` blocks, evenly spread."""
+def _coefficients(photo: np.ndarray, origin: tuple[int, int], keep: int, encode) -> np.ndarray:
+    """The block DCT coefficients `(n, 64)` (row-major `uv`) of one photo `(H, W[, C])` on the
+    grid at `origin`, its luma `encode(pixels)` (0-1) read only in about `keep` whole blocks
+    spread evenly over it (a 24 MP photo is not encoded whole), without the blocks that touch 0
+    or 255 (clipped: off the lattice)."""
     oy, ox = origin
-    t, h, w = y.shape
+    h, w = photo.shape[:2]
     by, bx = (h - oy) // 8, (w - ox) // 8
-    b = y[:, oy : oy + 8 * by, ox : ox + 8 * bx].reshape(t, by, 8, bx, 8)
-    b = b.transpose(0, 1, 3, 2, 4).reshape(-1, 8, 8)
+    n = np.unique(np.linspace(0, by * bx - 1, min(keep, by * bx)).astype(np.int64))
+    i, j = np.divmod(n, bx)
+    k = np.arange(8)
+    rows = oy + 8 * i[:, None, None] + k[None, :, None]
+    cols = ox + 8 * j[:, None, None] + k[None, None, :]
+    b = 255 * np.asarray(encode(photo[rows, cols]), np.float64)  # (n, 8, 8)
     lo, hi = b.min(axis=(1, 2)), b.max(axis=(1, 2))
     b = b[(lo > _CLIP_MARGIN) & (hi < 255 - _CLIP_MARGIN)]
-    if keep is not None and len(b) > keep:
-        b = b[np.linspace(0, len(b) - 1, keep).astype(int)]
     m = dct_matrix()
     return np.einsum("uk,nkl,vl->nuv", m, b, m).reshape(-1, 64)
 
@@ -200,26 +203,28 @@ def _filled(steps: np.ndarray) -> tuple[np.ndarray, int | None]:
     return filled, None
 
 
-def estimate(y: np.ndarray) -> tuple[JpegGrid | None, dict]:
-    """The grid and tables of photos decoded from JPEG files, from their luma `y` `(T, H, W)`
-    (`photo.luma`, `[0, 1]`), and a record of what was found; `None` for a photo with too few
-    steps on a lattice (not a JPEG, or one resampled since). One table per photo; the grid at
-    `(0, 0)` (a whole file) is tried first, then every other origin (a crop)."""
-    y = 255 * np.asarray(y, np.float64)
-    t, h, w = y.shape
+def estimate(photos: np.ndarray, encode=None) -> tuple[JpegGrid | None, dict]:
+    """The grid and tables of photos `(T, H, W[, C])` decoded from JPEG files, and a record of
+    what was found; `None` for a photo with too few steps on a lattice (not a JPEG, or one
+    resampled since). `encode` maps pixels to the file's luma in `[0, 1]` (`photo.luma` of
+    linear RGB, keeping a channel axis); `None`: `photos` are that luma. One table per photo;
+    the grid at `(0, 0)` (a whole file) is tried first, then every other origin (a crop)."""
+    if encode is None:
+        photos, encode = np.asarray(photos)[..., None], lambda x: x[..., 0]
+    t, h, w = photos.shape[:3]
     record: dict = {"found": False}
     if h < 16 or w < 16:
         return None, record
 
     def found(origin, keep):
-        tables = [_steps(_coefficients(y[i : i + 1], origin, keep)) for i in range(t)]
+        tables = [_steps(_coefficients(photos[i], origin, keep, encode)) for i in range(t)]
         return tables if all(np.sum(s >= 2) >= _MIN_ENTRIES for s in tables) else None
 
     origin, tables = (0, 0), found((0, 0), _MAX_BLOCKS)
     if tables is None:
         # Another origin: judged on a few blocks each, the winner on all of them.
         others = [(oy, ox) for oy in range(8) for ox in range(8) if (oy, ox) != (0, 0)]
-        score = [np.sum(_steps(_coefficients(y[:1], o, 256), 64) >= 2) for o in others]
+        score = [np.sum(_steps(_coefficients(photos[0], o, 128, encode), 48) >= 2) for o in others]
         origin = others[int(np.argmax(score))]
         tables = found(origin, _MAX_BLOCKS) if max(score) >= _MIN_ENTRIES else None
     if tables is None:
@@ -229,7 +234,7 @@ def estimate(y: np.ndarray) -> tuple[JpegGrid | None, dict]:
     record = {
         "found": True,
         "origin": origin,
-        "quality": [q for q in qualities],
+        "quality": list(qualities),
         "determined": [int(np.sum(s > 0)) for s in tables],
     }
     return grid, record
@@ -257,16 +262,16 @@ def jpeg_grid(targets, on: bool, jpeg) -> tuple[JpegGrid | None, dict]:
         if jpeg is not None:
             raise ValueError("jpeg compares the photos' luma: it needs colour photos (luma)")
         return None, {"found": False, "forced": False}
-    y = np.asarray(luma(jnp.asarray(_stacked(targets))))[..., 0]
+    photos = _stacked(targets)
     if jpeg is None or jpeg is True:
-        grid, record = estimate(y)
+        grid, record = estimate(photos, _luma)
         if grid is None and jpeg is True:
             raise ValueError(
                 "jpeg=True: the photos' luma has no JPEG quantisation lattice (not decoded from a "
                 "JPEG file, or resized since); pass the file's table, or jpeg=None"
             )
         return grid, {**record, "forced": jpeg is True}
-    grid = from_table(jpeg, y.shape[0], y.shape[1:3])
+    grid = from_table(jpeg, photos.shape[0], photos.shape[1:3])
     return grid, {"found": True, "origin": (0, 0), "quality": None, "forced": True}
 
 
@@ -276,3 +281,8 @@ def _stacked(targets) -> np.ndarray:
         return np.stack([np.asarray(t, np.float32) for t in targets])
     t = np.asarray(targets, np.float32)
     return t if t.ndim == 4 else t[None]
+
+
+def _luma(x: np.ndarray) -> np.ndarray:
+    """`photo.luma` on the host, without its channel axis."""
+    return _srgb(np.asarray(x, np.float64), np) @ np.asarray(_LUMA)
