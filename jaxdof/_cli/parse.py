@@ -483,36 +483,37 @@ def _add_fit_pixels(fit) -> None:
 
 
 def _add_fit_camera(fit) -> None:
-    """`fit`'s switches for what the camera added: the nuisances and the luma comparison."""
+    """`fit`'s switches for what the camera added: the nuisances, the luma comparison and the
+    JPEG blocks."""
+    when = "where a score test at the fit without it asks for it"
     for name, what in (
-        ("exposure", "a gain and offset per TARGET"),
-        ("vignetting", "a radial gain 1 + a r^2 + b r^4 per TARGET"),
-        ("illumination", "a gain tilted across the frame 1 + c_x u + c_y v per TARGET"),
-        ("registration", "a shift and magnification (focus breathing) per TARGET"),
+        ("exposure", f"fit a gain and offset per TARGET: auto (default: {when})"),
+        ("vignetting", f"fit a radial gain 1 + a r^2 + b r^4 per TARGET: auto (default: {when})"),
+        (
+            "illumination",
+            f"fit a gain tilted across the frame 1 + c_x u + c_y v per TARGET: auto (default: "
+            f"{when})",
+        ),
+        (
+            "registration",
+            f"fit a shift and magnification (focus breathing) per TARGET: auto (default: {when})",
+        ),
+        (
+            "luma",
+            "compare the photos in their sRGB luma: auto (default: on for a JPEG TARGET with "
+            "half-resolution colour, 4:2:0 or 4:2:2, as cameras write; else where a TARGET has "
+            "lost the all-in-focus image's colour detail)",
+        ),
+        (
+            "jpeg",
+            "with the luma, compare a JPEG TARGET in its 8x8 blocks to within half its "
+            "quantisation steps (what the file holds): auto (default: where the decoded photo's "
+            "coefficients lie on a quantisation lattice)",
+        ),
     ):
         fit.add_argument(
-            f"--{name}",
-            choices=("auto", "on", "off"),
-            default="auto",
-            help=f"fit {what}: auto (default: where a score test at the fit without it asks for "
-            "it), on or off",
+            f"--{name}", choices=("auto", "on", "off"), default="auto", help=f"{what}, on or off"
         )
-    fit.add_argument(
-        "--luma",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="compare the photos in their sRGB luma: auto (default: on for a JPEG TARGET with "
-        "half-resolution colour, 4:2:0 or 4:2:2, as cameras write; else where a TARGET has lost "
-        "the all-in-focus image's colour detail), on or off",
-    )
-    fit.add_argument(
-        "--jpeg",
-        choices=("auto", "on", "off"),
-        default="auto",
-        help="with the luma, compare a JPEG TARGET in its 8x8 blocks to within half its "
-        "quantisation steps (what the file holds): auto (default: where the decoded photo's "
-        "coefficients lie on a quantisation lattice), on or off",
-    )
 
 
 def _add_fit(sub) -> None:
