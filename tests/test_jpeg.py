@@ -191,3 +191,21 @@ def test_jpeg_option_errors_name_the_problem():
         jaxdof.fit_lens(image, depth, image, lens, luma=True, jpeg=True)
     with pytest.raises(ValueError, match="luma"):
         jaxdof.fit_lens(image, depth, image, lens, luma=False, jpeg=True)
+
+
+@pytest.mark.parametrize("switch, want", [("auto", None), ("on", True), ("off", False)])
+def test_cli_jpeg_switch_reaches_fit_lens(tmp_path, switch, want):
+    """`jaxdof fit --jpeg auto|on|off` hands `fit_lens` `jpeg=None|True|False`."""
+    import imageio.v3 as iio
+
+    from jaxdof._cli.commands import fit_call
+    from jaxdof._cli.parse import build_parser
+
+    code = np.round(255 * linear_to_srgb(_texture(16, 24, 6))).astype(np.uint8)
+    iio.imwrite(tmp_path / "sharp.png", code)
+    Image.fromarray(code).save(tmp_path / "photo.jpg", quality=90)
+    np.save(tmp_path / "depth.npy", np.full((16, 24), 2.0, np.float32))
+    files = [str(tmp_path / n) for n in ("sharp.png", "depth.npy", "photo.jpg")]
+    lens = ["--focal-length", "50mm", "--f-number", "4", "--focus", "2m", "--sensor-width", "5mm"]
+    args = build_parser().parse_args(["fit", *files, *lens, "--jpeg", switch, "--quiet"])
+    assert fit_call(args).kwargs["jpeg"] is want
