@@ -209,3 +209,26 @@ def test_cli_jpeg_switch_reaches_fit_lens(tmp_path, switch, want):
     lens = ["--focal-length", "50mm", "--f-number", "4", "--focus", "2m", "--sensor-width", "5mm"]
     args = build_parser().parse_args(["fit", *files, *lens, "--jpeg", switch, "--quiet"])
     assert fit_call(args).kwargs["jpeg"] is want
+
+
+@pytest.mark.slow
+def test_a_jpeg_fitted_on_tiles_is_compared_in_its_blocks():
+    """A fit on tiles (a budget of 4 tiles of 32 x 32) of a camera JPEG: the tiles lie on the
+    file's 8 x 8 grid (corners and halos multiples of 8), the tile mosaic is compared in its
+    blocks (the loss under the pixel comparison's on the same tiles) and the lens is right."""
+    h, w = 160, 192
+    image = _texture(h, w, 7)
+    x = np.linspace(0.0, 1.0, w)
+    depth = np.where(x < 0.5, 1.2 + x, 3.0 + 2 * x)[None].repeat(h, 0).astype(np.float32)
+    truth = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=w)
+    decoded, _ = _encoded(np.asarray(jaxdof.render(image, depth, truth)))
+    init = jaxdof.ThinLens.from_sensor(0.05, 4.0, 2.0, sensor_width=0.0048, image_width=w)
+    held = dict(exposure=False, vignetting=False, illumination=False, registration=False)
+    held.update(method="soft", footprint=False, starts=1)
+    fit = jaxdof.fit_lens(image, depth, decoded, init, tiles=4 * 32 * 32, **held)
+    assert fit.tiles and all(r % 8 == 0 and c % 8 == 0 for r, c, _, _ in fit.tiles), fit.tiles
+    np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
+    np.testing.assert_allclose(float(fit.lenses.focus_distance[0]), 2.5, rtol=0.01)
+    pixels = jaxdof.fit_lens(image, depth, decoded, init, tiles=fit.tiles, jpeg=False, **held)
+    assert pixels.tiles == fit.tiles
+    assert float(np.sum(fit.loss)) < 0.9 * float(np.sum(pixels.loss))

@@ -26,7 +26,7 @@ from .._filters.common import is_concrete
 from .._lens import ThinLens
 from .._upsample import upsample_depth
 from .forward import AbstractForwardModel
-from .jpeg import jpeg_grid
+from .jpeg import jpeg_align, jpeg_grid
 from .layout import pack
 from .path import Run, coarse_solve, compiled_windows, full_resolution, solvers
 from .photo import _LANCZOS, FRAMED, NUISANCES, canonical, chroma_detail, half_diagonal
@@ -413,9 +413,9 @@ def _set_up(
         treatment = dataclasses.replace(
             treatment, depth_holes=holes, hole_pixels=hole_pixels, hole_reach=hole_reach
         )
-    budget, boxes = use_tiles(tiles, p.photo), tile_boxes(tiles)
-    given = boxes is not None and given_tiles(p.photo, forward, window, boxes) is not None
-    if budget is not None and not given and not fits_tiles(p.photo, forward, window, budget):
+    budget, boxes, align = use_tiles(tiles, p.photo), tile_boxes(tiles), jpeg_align(jpeg)
+    given = boxes is not None and given_tiles(p.photo, forward, window, boxes, align) is not None
+    if budget is not None and not given and not fits_tiles(p.photo, forward, window, budget, align):
         budget = None  # too few candidate tiles (and no given ones that fit): the whole frame
     if levels is None and len(rows0) == 1:
         # From one start the init is refined at full resolution anyway (`_coarse_to_fine`), so

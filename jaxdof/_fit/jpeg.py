@@ -106,6 +106,10 @@ class JpegGrid:
     origin: tuple[int, int]
     shape: tuple[int, int]
 
+    def on(self, shape: tuple[int, int]) -> JpegGrid:
+        """The grid of a mosaic of `shape` cut from the photo on its grid (`tiles.py`)."""
+        return dataclasses.replace(self, shape=(int(shape[0]), int(shape[1])))
+
     def steps(self, dtype) -> Float[Array, "t 1 8 1 8"]:
         """The tables, broadcastable over blocks `(T, by, 8, bx, 8)`."""
         q = np.asarray(self.tables, np.float64).reshape(-1, 1, 8, 1, 8)
@@ -238,6 +242,12 @@ def estimate(photos: np.ndarray, encode=None) -> tuple[JpegGrid | None, dict]:
         "determined": [int(np.sum(s > 0)) for s in tables],
     }
     return grid, record
+
+
+def jpeg_align(grid: JpegGrid | None) -> int:
+    """The alignment of a fit's tiles: 8 for a JPEG grid at `(0, 0)` (the tiles then lie on its
+    blocks, `tiles._grid`), else 1."""
+    return 8 if grid is not None and grid.origin == (0, 0) else 1
 
 
 def from_table(table, t: int, shape: tuple[int, int]) -> JpegGrid:

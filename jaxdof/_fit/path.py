@@ -21,7 +21,7 @@ import optimistix as optx
 
 from .._filters.common import tap_offsets
 from .forward import AbstractForwardModel
-from .jpeg import JpegGrid
+from .jpeg import JpegGrid, jpeg_align
 from .layout import pack, theta_floor
 from .lm import bounded
 from .prepare import Problem
@@ -414,8 +414,9 @@ def _on_tiles(run: Run, rows0: np.ndarray, window: float, budget: int, levels: i
     def choose(win: float, information) -> Tiles | None:
         # An earlier fit's tiles where given and their halos fit, so that it is compared with
         # this one on the same pixels (`select.same_pixels`); else chosen here.
-        given = None if run.boxes is None else given_tiles(p.photo, forward, win, run.boxes)
-        return given or choose_tiles(p, forward, win, budget, information)
+        align = jpeg_align(run.jpeg)
+        given = None if run.boxes is None else given_tiles(p.photo, forward, win, run.boxes, align)
+        return given or choose_tiles(p, forward, win, budget, information, align)
 
     q = scout_factor(p.photo, forward.max_circle(rows0, p.d), levels)  # levels 1: one start
     y0_init = pack(rows0.astype(p.dtype), p.layout, p.spec.nuisances)
@@ -450,12 +451,17 @@ def _on_chosen(run: Run, chosen: Tiles, y0s, rows: np.ndarray):
     the tiles may not hold), `run` on their mosaic, the starts, and the full-resolution window
     over the mosaic (`_fine_window`), whether a scout or an earlier fit chose the tiles."""
     p = run.problem
+    align = jpeg_align(run.jpeg)
     if run.max_radius is None:
         crops = chosen.mosaic(p.depth, p.ratio, 0, np.nan)
         reach = _fine_window(run, rows, crops[~np.isnan(crops)])
-        halo = min(int(run.forward.border_band(reach)), chosen.halo)
-        chosen = dataclasses.replace(chosen, halo=halo)
-    run = dataclasses.replace(run, problem=tiled_problem(p, chosen), border=0)
+        halo = -(-int(run.forward.border_band(reach)) // align) * align
+        chosen = dataclasses.replace(chosen, halo=min(halo, chosen.halo))
+    tiled = tiled_problem(p, chosen)
+    # A camera JPEG's blocks where every crop lies on its grid (tiles chosen here: `align`).
+    on_grid = align == 8 and all(v % 8 == 0 for v in (chosen.halo, *sum(chosen.corners, ())))
+    jpeg = run.jpeg.on(tiled.photo) if on_grid and run.jpeg is not None else None
+    run = dataclasses.replace(run, problem=tiled, border=0, jpeg=jpeg)
     return run, y0s, chosen, _fine_window(run, rows)
 
 

@@ -58,7 +58,7 @@ class _Model(eqx.Module):
     n_live: int | None = eqx.field(static=True, default=None)
     luma: bool = eqx.field(static=True, default=False)
     # A camera JPEG's blocks and steps (`jpeg.py`): the luma compared in the file's terms, on
-    # the photo the grid belongs to (a pyramid level or a tile mosaic: pixel by pixel).
+    # the photo (or tile mosaic) the grid belongs to; a pyramid level's: pixel by pixel.
     jpeg: JpegGrid | None = eqx.field(static=True, default=None)
 
     def natural(self, y: Float[Array, " P"], layout: _Layout) -> Float[Array, "t 4"]:
@@ -133,7 +133,7 @@ class _Model(eqx.Module):
         y = y.astype(targets.dtype)
         pred = camera(raw, self.nuisance_params(y), self.nuisances, self.luma, layout.frame_vu)
         grid = self.jpeg
-        if grid is not None and layout.frame_vu is None and targets.shape[1:3] == grid.shape:
+        if grid is not None and targets.shape[1:3] == grid.shape:
             r = grid.residual(pred, targets, sqrt_w).reshape(-1)
         else:
             r = ((pred - targets) * sqrt_w).reshape(-1)

@@ -179,11 +179,14 @@ def tile_boxes(tiles) -> tuple[tuple[int, int, int, int], ...] | None:
     return tuple(boxes)
 
 
-def given_tiles(photo: tuple[int, ...], forward, window: float, boxes) -> Tiles | None:
-    """`Tiles` with the interiors `boxes` (`tile_boxes`) and halos of `window`'s reach, or None
-    where a halo would leave the frame (a larger window than the one they were chosen for)."""
+def given_tiles(
+    photo: tuple[int, ...], forward, window: float, boxes, align: int = 1
+) -> Tiles | None:
+    """`Tiles` with the interiors `boxes` (`tile_boxes`) and halos of `window`'s reach (a
+    multiple of `align`, as `_grid`'s), or None where a halo would leave the frame (a larger
+    window than the one they were chosen for)."""
     hh, ww = photo[:2]
-    halo, side = int(forward.border_band(window)), boxes[0][2]
+    halo, side = -(-int(forward.border_band(window)) // align) * align, boxes[0][2]
     corners = tuple((r, c) for r, c, _, _ in boxes)
     inside = all(
         halo <= r and r + side + halo <= hh and halo <= c and c + side + halo <= ww
@@ -263,11 +266,13 @@ def _box_sums(x: np.ndarray, size: int, starts_r, starts_c, dtype=None) -> np.nd
     return c[r1, c1] - c[r0, c1] - c[r1, c0] + c[r0, c0]
 
 
-def _grid(photo: tuple[int, ...], forward, window: float, budget: int):
+def _grid(photo: tuple[int, ...], forward, window: float, budget: int, align: int = 1):
     """The candidate tiles for halos of `window`'s reach: `(halo, side, want, rows, columns)`
-    (the corners' rows and columns), or None with fewer than twice the tiles wanted."""
+    (the corners' rows and columns), or None with fewer than twice the tiles wanted. With
+    `align` 8 the halo is a multiple of 8 (sides are already), so every corner lies on a camera
+    JPEG's 8 x 8 grid, in the frame and in the mosaic (`jpeg.py`)."""
     hh, ww = photo[:2]
-    halo = int(forward.border_band(window))
+    halo = -(-int(forward.border_band(window)) // align) * align
     # At least twice the halo, so that interiors are at least a quarter of the pixels rendered.
     side = max(SIDE, -(-2 * halo // 8) * 8)
     want = max(1, budget // (side * side))
@@ -278,21 +283,26 @@ def _grid(photo: tuple[int, ...], forward, window: float, budget: int):
     return halo, side, want, starts_r, starts_c
 
 
-def fits_tiles(photo: tuple[int, ...], forward, window: float, budget: int) -> bool:
+def fits_tiles(photo: tuple[int, ...], forward, window: float, budget: int, align: int = 1) -> bool:
     """Whether a photo of shape `photo` holds enough candidate tiles (`choose_tiles`) for
-    `budget` pixels with halos of `window`'s reach."""
-    return _grid(photo, forward, window, budget) is not None
+    `budget` pixels with halos of `window`'s reach (a multiple of `align`)."""
+    return _grid(photo, forward, window, budget, align) is not None
 
 
 def choose_tiles(
-    p: Problem, forward, window: float, budget: int, information: Callable[[], tuple]
+    p: Problem,
+    forward,
+    window: float,
+    budget: int,
+    information: Callable[[], tuple],
+    align: int = 1,
 ) -> Tiles | None:
     """The tiles of a fit on `budget` interior pixels with halos of `window`'s reach (module
     docstring), or None when the photo holds too few candidates to be worth it (fewer than twice
     the tiles wanted). `information()` gives the reduced pixels' information and their factor
     `q` (`pixel_information`, or `jacobian_information` of a scout solve); it is called only
     when there are enough candidates."""
-    grid = _grid(p.photo, forward, window, budget)
+    grid = _grid(p.photo, forward, window, budget, align)
     if grid is None:
         return None
     halo, side, want, starts_r, starts_c = grid
