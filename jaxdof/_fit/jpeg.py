@@ -210,8 +210,8 @@ def _filled(steps: np.ndarray) -> tuple[np.ndarray, int | None]:
 def estimate(photos: np.ndarray, encode=None) -> tuple[JpegGrid | None, dict]:
     """The grid and tables of photos `(T, H, W[, C])` decoded from JPEG files, and a record of
     what was found; `None` for a photo with too few steps on a lattice (not a JPEG, or one
-    resampled since). `encode` maps pixels to the file's luma in `[0, 1]` (`photo.luma` of
-    linear RGB, keeping a channel axis); `None`: `photos` are that luma. One table per photo;
+    resampled since). `encode` maps pixels `(..., C)` to the file's luma `(...)` in `[0, 1]`
+    (`photo.luma` of linear RGB); `None`: `photos` `(T, H, W)` are that luma. One table per photo;
     the grid at `(0, 0)` (a whole file) is tried first, then every other origin (a crop)."""
     if encode is None:
         photos, encode = np.asarray(photos)[..., None], lambda x: x[..., 0]
