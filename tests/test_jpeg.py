@@ -155,19 +155,29 @@ def test_residual_gradients_with_jpeg_blocks_and_nuisances():
     check_grads(jax.jit(lambda y: model(y, args)), (y,), order=1, modes=("fwd", "rev"), eps=1e-6)
 
 
-def test_a_jpeg_of_a_render_is_fitted_in_its_blocks():
-    """A 4:2:0 JPEG (quality 90) of a render: the fit finds the file's table, compares in its
-    blocks and recovers the lens within 1 %; `jpeg=False` and the file's own table given are
-    honoured and reported."""
-    h, w = 48, 64
-    image = _texture(h, w, 4)
+# Every nuisance held off and the render's own treatment: the photos here are soft renders.
+_HELD = dict(exposure=False, vignetting=False, illumination=False, registration=False)
+_HELD.update(method="soft", footprint=False)
+
+
+def _jpeg_scene(h, w, seed):
+    """A textured two-plane scene, a quality-90 JPEG of its render at f/2.8 focused at 2.5 m
+    (decoded to linear light), the file's table and a start at f/4, 2 m."""
+    image = _texture(h, w, seed)
     x = np.linspace(0.0, 1.0, w)
     depth = np.where(x < 0.5, 1.2 + x, 3.0 + 2 * x)[None].repeat(h, 0).astype(np.float32)
     truth = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=w)
     decoded, table = _encoded(np.asarray(jaxdof.render(image, depth, truth)))
     init = jaxdof.ThinLens.from_sensor(0.05, 4.0, 2.0, sensor_width=0.0048, image_width=w)
-    held = dict(exposure=False, vignetting=False, illumination=False, registration=False)
-    held.update(method="soft", footprint=False)
+    return image, depth, decoded, table, init
+
+
+def test_a_jpeg_of_a_render_is_fitted_in_its_blocks():
+    """A 4:2:0 JPEG (quality 90) of a render: the fit finds the file's table, compares in its
+    blocks and recovers the lens within 1 %; `jpeg=False` and the file's own table given are
+    honoured and reported."""
+    image, depth, decoded, table, init = _jpeg_scene(48, 64, 4)
+    held = _HELD
     fit = jaxdof.fit_lens(image, depth, decoded, init, **held)
     entry = fit.nuisances["luma"]["jpeg"]
     assert entry["found"] and not entry["forced"] and entry["quality"] == [90], entry
@@ -216,15 +226,8 @@ def test_a_jpeg_fitted_on_tiles_is_compared_in_its_blocks():
     """A fit on tiles (a budget of 4 tiles of 32 x 32) of a camera JPEG: the tiles lie on the
     file's 8 x 8 grid (corners and halos multiples of 8), the tile mosaic is compared in its
     blocks (the loss under the pixel comparison's on the same tiles) and the lens is right."""
-    h, w = 160, 192
-    image = _texture(h, w, 7)
-    x = np.linspace(0.0, 1.0, w)
-    depth = np.where(x < 0.5, 1.2 + x, 3.0 + 2 * x)[None].repeat(h, 0).astype(np.float32)
-    truth = jaxdof.ThinLens.from_sensor(0.05, 2.8, 2.5, sensor_width=0.0048, image_width=w)
-    decoded, _ = _encoded(np.asarray(jaxdof.render(image, depth, truth)))
-    init = jaxdof.ThinLens.from_sensor(0.05, 4.0, 2.0, sensor_width=0.0048, image_width=w)
-    held = dict(exposure=False, vignetting=False, illumination=False, registration=False)
-    held.update(method="soft", footprint=False, starts=1)
+    image, depth, decoded, _, init = _jpeg_scene(160, 192, 7)
+    held = dict(_HELD, starts=1)
     fit = jaxdof.fit_lens(image, depth, decoded, init, tiles=4 * 32 * 32, **held)
     assert fit.tiles and all(r % 8 == 0 and c % 8 == 0 for r, c, _, _ in fit.tiles), fit.tiles
     np.testing.assert_allclose(float(fit.lenses.f_number[0]), 2.8, rtol=0.01)
