@@ -420,20 +420,16 @@ def read_image(path: str, *, linear: bool = False, option: str = "IMAGE") -> Loa
     return Loaded(np.ascontiguousarray(image, dtype=np.float32), bits, notes)
 
 
+#: A JPEG's colour samplings that store Cb, Cr at lower resolution than the luma
+#: (`jpeg_header`'s `chroma`).
+SUBSAMPLED = ("4:2:0", "4:2:2")
+
+
 def chroma_subsampled(path: str) -> bool:
     """Whether `path` is a JPEG whose colour (Cb, Cr) is stored at lower resolution than its luma
     (4:2:0 or 4:2:2, what cameras and Pillow write by default), from its header (no decoding)."""
-    if _suffix(path) not in (".jpg", ".jpeg"):
-        return False
-    from PIL import Image, JpegImagePlugin
-
-    try:
-        with Image.open(path) as im:
-            return isinstance(im, JpegImagePlugin.JpegImageFile) and (
-                JpegImagePlugin.get_sampling(im) in (1, 2)
-            )
-    except Exception:  # unreadable: read_image has said so already
-        return False
+    header = jpeg_header(path)
+    return header is not None and header["chroma"] in SUBSAMPLED
 
 
 def jpeg_header(path: str) -> dict | None:

@@ -9,6 +9,7 @@ import types
 
 import numpy as np
 
+from .._io import SUBSAMPLED
 from .parse import FIELDS
 
 
@@ -192,7 +193,7 @@ def print_info(info: dict, *, as_json: bool) -> None:
     if info.get("jpeg"):
         j = info["jpeg"]
         table = "the camera's own table" if j["quality"] is None else f"quality {j['quality']}"
-        if j["chroma"] in ("4:2:0", "4:2:2"):  # what `fit --luma auto` reads from the header
+        if j["chroma"] in SUBSAMPLED:  # what `fit --luma auto` reads from the header
             how = (
                 f"colour {j['chroma']}: fit compares the luma in its 8 x 8 blocks (--luma, --jpeg)"
             )

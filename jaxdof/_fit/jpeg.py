@@ -46,7 +46,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Float
 
-from .photo import _LUMA, _srgb
+from .photo import _luma
 
 
 #: The standard luminance table (ITU-T T.81 Annex K.1), scaled by the quality as the IJG library
@@ -136,10 +136,10 @@ class JpegGrid:
         def blocks(x):
             return x[sl][..., 0].reshape(t, by, 8, bx, 8)
 
-        sw = jnp.broadcast_to(sqrt_w, targets.shape)
-        d = 255 * (blocks(pred) - blocks(targets))
+        diff = pred - targets
+        d = blocks(diff)
         m = jnp.asarray(dct_matrix(), d.dtype)
-        c = jnp.einsum("uk,tikjl,vl->tiujv", m, d, m)
+        c = jnp.einsum("uk,tikjl,vl->tiujv", m, 255 * d, m)
         half = 0.5 * self.steps(d.dtype)
         # The render less the file-consistent photo nearest to it, back in pixels.
         e = jnp.einsum("uk,tiujv,vl->tikjl", m, c - jnp.clip(c, -half, half), m) / 255
@@ -148,9 +148,9 @@ class JpegGrid:
         inside = (jnp.min(y, axis=(2, 4), keepdims=True) > _CLIP_MARGIN) & (
             jnp.max(y, axis=(2, 4), keepdims=True) < 255 - _CLIP_MARGIN
         )
-        e = jnp.where(inside, e, blocks(pred) - blocks(targets))
-        diff = (pred - targets).at[sl].set(e.reshape(t, 8 * by, 8 * bx)[..., None])
-        return diff * sw
+        e = jnp.where(inside, e, d)
+        diff = diff.at[sl].set(e.reshape(t, 8 * by, 8 * bx)[..., None])
+        return diff * jnp.broadcast_to(sqrt_w, targets.shape)
 
 
 def _coefficients(photo: np.ndarray, origin: tuple[int, int], keep: int, encode) -> np.ndarray:
@@ -274,7 +274,7 @@ def jpeg_grid(targets, on: bool, jpeg) -> tuple[JpegGrid | None, dict]:
         return None, {"found": False, "forced": False}
     photos = _stacked(targets)
     if jpeg is None or jpeg is True:
-        grid, record = estimate(photos, _luma)
+        grid, record = estimate(photos, lambda x: _luma(np.asarray(x, np.float64), np)[..., 0])
         if grid is None and jpeg is True:
             raise ValueError(
                 "jpeg=True: the photos' luma has no JPEG quantisation lattice (not decoded from a "
@@ -291,8 +291,3 @@ def _stacked(targets) -> np.ndarray:
         return np.stack([np.asarray(t, np.float32) for t in targets])
     t = np.asarray(targets, np.float32)
     return t if t.ndim == 4 else t[None]
-
-
-def _luma(x: np.ndarray) -> np.ndarray:
-    """`photo.luma` on the host, without its channel axis."""
-    return _srgb(np.asarray(x, np.float64), np) @ np.asarray(_LUMA)

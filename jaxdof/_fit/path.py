@@ -44,6 +44,7 @@ from .tiles import (
     choose_tiles,
     edge_free,
     given_tiles,
+    halo_of,
     jacobian_information,
     pixel_information,
     scout_factor,
@@ -455,7 +456,7 @@ def _on_chosen(run: Run, chosen: Tiles, y0s, rows: np.ndarray):
     if run.max_radius is None:
         crops = chosen.mosaic(p.depth, p.ratio, 0, np.nan)
         reach = _fine_window(run, rows, crops[~np.isnan(crops)])
-        halo = -(-int(run.forward.border_band(reach)) // align) * align
+        halo = halo_of(run.forward, reach, align)
         chosen = dataclasses.replace(chosen, halo=min(halo, chosen.halo))
     tiled = tiled_problem(p, chosen)
     # A camera JPEG's blocks where every crop lies on its grid (tiles chosen here: `align`).

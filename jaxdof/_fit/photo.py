@@ -168,7 +168,12 @@ def _srgb(x, xp):
 
 def luma(x: Float[Array, "*s 3"]) -> Float[Array, "*s 1"]:
     """The sRGB-encoded luma `Y'` (BT.601 weights) of linear RGB, keeping a channel axis."""
-    e = srgb_encode(x)
+    return _luma(x, jnp)
+
+
+def _luma(x, xp):
+    """`luma` in `xp` (`np` on the host, in `x`'s precision: a JPEG's table, `jpeg.estimate`)."""
+    e = _srgb(x, xp)
     return (_LUMA[0] * e[..., :1] + _LUMA[1] * e[..., 1:2] + _LUMA[2] * e[..., 2:3]).astype(x.dtype)
 
 

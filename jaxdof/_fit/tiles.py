@@ -179,6 +179,12 @@ def tile_boxes(tiles) -> tuple[tuple[int, int, int, int], ...] | None:
     return tuple(boxes)
 
 
+def halo_of(forward, window: float, align: int = 1) -> int:
+    """A tile's halo (photo pixels): the band `window`'s circles reach
+    (`forward.border_band`), rounded up to a multiple of `align` (8: on a JPEG's grid)."""
+    return -(-int(forward.border_band(window)) // align) * align
+
+
 def given_tiles(
     photo: tuple[int, ...], forward, window: float, boxes, align: int = 1
 ) -> Tiles | None:
@@ -186,7 +192,7 @@ def given_tiles(
     multiple of `align`, as `_grid`'s), or None where a halo would leave the frame (a larger
     window than the one they were chosen for)."""
     hh, ww = photo[:2]
-    halo, side = -(-int(forward.border_band(window)) // align) * align, boxes[0][2]
+    halo, side = halo_of(forward, window, align), boxes[0][2]
     corners = tuple((r, c) for r, c, _, _ in boxes)
     inside = all(
         halo <= r and r + side + halo <= hh and halo <= c and c + side + halo <= ww
@@ -272,7 +278,7 @@ def _grid(photo: tuple[int, ...], forward, window: float, budget: int, align: in
     `align` 8 the halo is a multiple of 8 (sides are already), so every corner lies on a camera
     JPEG's 8 x 8 grid, in the frame and in the mosaic (`jpeg.py`)."""
     hh, ww = photo[:2]
-    halo = -(-int(forward.border_band(window)) // align) * align
+    halo = halo_of(forward, window, align)
     # At least twice the halo, so that interiors are at least a quarter of the pixels rendered.
     side = max(SIDE, -(-2 * halo // 8) * 8)
     want = max(1, budget // (side * side))
